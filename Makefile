@@ -1,0 +1,43 @@
+# Two commands for a newcomer: `make demo` and `make test`.
+# Both create .venv when it is missing and install the project with all it needs.
+SHELL := /bin/bash
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+
+.PHONY: setup system-deps demo test test-all results results-quick bench clean
+
+# Open3D's Linux wheel loads libusb-1.0 at import time.
+system-deps:
+	@if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	    echo "installing libusb-1.0-0 (needed by Open3D)"; \
+	    apt-get update -qq >/dev/null && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libusb-1.0-0 >/dev/null; \
+	  else \
+	    echo "contactpose: Open3D needs the system library libusb-1.0-0; install it with: sudo apt-get install libusb-1.0-0" >&2; \
+	  fi; \
+	fi
+
+$(STAMP): pyproject.toml
+	@test -x $(PY) || python3 -m venv $(VENV)
+	@echo "installing contactpose and its dependencies into $(VENV) (first run takes a few minutes)"
+	@$(PY) -m pip install -q --disable-pip-version-check -e ".[test]" 2>&1 | grep -v "is ignored: it is neither a file nor a directory" || true
+	@$(PY) -c "import contactpose, gtsam, emcee, trimesh, numba, dask.distributed" 
+	@touch $(STAMP)
+
+setup: system-deps $(STAMP)
+
+demo: setup
+	$(PY) -m contactpose demo
+
+test: setup
+	$(PY) -m pytest -q -m "not slow" -p no:cacheprovider
+
+test-all: setup
+	$(PY) -m pytest -q -p no:cacheprovider
+
+bench: setup
+	$(PY) -m contactpose bench
+
+clean:
+	rm -rf $(VENV) build *.egg-info

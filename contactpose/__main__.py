@@ -1,0 +1,3 @@
+from contactpose.cli import main
+
+raise SystemExit(main())

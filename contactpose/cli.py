@@ -1,0 +1,149 @@
+"""Command-line interface: ``contactpose build-model | localize | demo | bench | scan``.
+
+Bad input exits with code 2 and one line on stderr (``contactpose: error: ...``);
+``--debug`` shows the traceback of internal errors.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import sys
+import time
+import warnings
+
+from contactpose.errors import ContactPoseError
+
+log = logging.getLogger("contactpose")
+
+
+def _model_or_mesh(path, bins=None, bounds=None):
+    """Load a model .npz, or build one from a mesh file (or built-in object name)."""
+    from contactpose import objects
+    from contactpose.model import ObjectModel
+
+    if str(path).endswith(".npz"):
+        return ObjectModel.load(path, bins=bins, bounds=bounds)
+    source = objects.load(path) if path in objects.names() and not os.path.exists(path) else path
+    kwargs = {k: v for k, v in (("bins", bins), ("bounds", bounds)) if v is not None}
+    return ObjectModel.from_mesh(source, **kwargs)
+
+
+def cmd_build_model(args):
+    start = time.perf_counter()
+    model = _model_or_mesh(args.mesh, bins=args.bins, bounds=args.bounds)
+    seconds = time.perf_counter() - start
+    out = args.output or os.path.splitext(os.path.basename(args.mesh))[0] + ".npz"
+    model.save(out)
+    d = model.describe()
+    print(f"facets: {d['facets']} ({d['degenerate_facets']} degenerate, excluded)")
+    print(f"ordered pairs: {d['ordered_pairs']}")
+    print(f"build time: {seconds * 1000:.1f} ms (features {model.build_seconds['features'] * 1000:.1f} ms, "
+          f"table {model.build_seconds['table'] * 1000:.1f} ms)")
+    print(f"file: {out} ({os.path.getsize(out) / 1024:.1f} KiB)")
+    return 0
+
+
+def cmd_localize(args):
+    from contactpose import io
+    from contactpose.localize import localize
+
+    model = _model_or_mesh(args.model)
+    contacts = io.read_contacts(args.contacts)
+    prior = io.read_prior(args.prior) if args.prior else None
+    result = localize(model, contacts, position_noise=args.position_noise,
+                      normal_noise_deg=args.normal_noise_deg, prior=prior, method=args.method,
+                      solver=args.solver, top=args.top)
+    data = result.to_dict()
+    if args.output:
+        io.write_json(args.output, data)
+    _print_result(result)
+    return 0
+
+
+def _print_result(result):
+    print(f"status: {result.status}" + (f" ({result.hint})" if result.hint else ""))
+    print(f"hypotheses: {result.num_hypotheses}  time: {result.timing['total'] * 1000:.2f} ms")
+    if result.best is not None:
+        b = result.best
+        print(f"best facets: {b.facets.tolist()}  cost: {b.cost:.4g}")
+        for row in b.pose:
+            print("  " + " ".join(f"{v: .6f}" for v in row))
+
+
+def cmd_demo(args):
+    from contactpose.demo import run_demo
+
+    return run_demo(seed=args.seed, out_dir=args.out)
+
+
+def cmd_bench(args):
+    from contactpose.bench import run_bench
+
+    return run_bench(args)
+
+
+def build_parser():
+    parser = argparse.ArgumentParser(prog="contactpose", description=__doc__.splitlines()[0])
+    parser.add_argument("--debug", action="store_true", help="show tracebacks and debug logs")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("build-model", help="build a contact model (.npz) from a mesh")
+    p.add_argument("mesh", help="mesh file (STL, OBJ, PLY, OFF, GLB) or a built-in object name")
+    p.add_argument("-o", "--output", help="output .npz (default: MESH name with .npz)")
+    p.add_argument("--bins", nargs=3, type=int, metavar="P", help="bins p_dmax p_dmin p_alpha")
+    p.add_argument("--bounds", choices=("exact", "paper"), default="exact")
+    p.set_defaults(func=cmd_build_model)
+
+    p = sub.add_parser("localize", help="find contact facets and the object pose")
+    p.add_argument("model", help="model .npz, mesh file or built-in object name")
+    p.add_argument("--contacts", required=True, help="CONTACTS.json")
+    p.add_argument("--prior", help="PRIOR.json")
+    p.add_argument("--position-noise", type=float, help="σ of contact points (length units)")
+    p.add_argument("--normal-noise-deg", type=float, default=1.0, help="σ of normals (degrees)")
+    p.add_argument("--method", choices=("fast", "paper"), default="fast")
+    p.add_argument("--solver", choices=("closed-form", "lm"))
+    p.add_argument("--top", type=int, help="keep the best K hypotheses")
+    p.add_argument("-o", "--output", help="write the result as JSON")
+    p.set_defaults(func=cmd_localize)
+
+    p = sub.add_parser("demo", help="the paper's banana protocol on the built-in banana")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", default="results/demo")
+    p.set_defaults(func=cmd_demo)
+
+    p = sub.add_parser("bench", help="online and offline timings, fast vs paper")
+    p.add_argument("--json", help="also write the table as JSON")
+    p.add_argument("--runs", type=int, default=25)
+    p.add_argument("--models", nargs="*", help="built-in object names (default: banana rock1k)")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=cmd_bench)
+
+    _register_optional(sub)
+    return parser
+
+
+def _register_optional(sub):
+    """Subcommands of optional modules (scan), when they are importable."""
+    try:
+        from contactpose import scan
+    except ImportError as exc:  # Open3D missing: the rest of the CLI still works
+        log.debug("scan subcommand unavailable: %s", exc)
+        return
+    scan.register_cli(sub)
+
+
+def main(argv=None):
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.DEBUG if args.debug else logging.WARNING,
+                        format="contactpose: %(message)s")
+    warnings.showwarning = lambda msg, *a, **k: print(f"contactpose: warning: {msg}", file=sys.stderr)
+    try:
+        return args.func(args)
+    except ContactPoseError as exc:
+        if args.debug:
+            raise
+        print(f"contactpose: error: {exc}", file=sys.stderr)
+        return 2

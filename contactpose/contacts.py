@@ -1,0 +1,156 @@
+"""Contact measurements (paper eq. 1) and the pair conditions between fingers (§3.2).
+
+A contact is an oriented point: the contact point x̃_i and the finger surface
+normal ñ_i, which is anti-parallel to the object's outward normal there.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from itertools import combinations
+
+import numpy as np
+
+from contactpose import tol
+from contactpose.errors import ContactsError
+
+
+def _as_vectors(name, values, n=None):
+    """values -> (n, 3) float64 with all entries finite, else ContactsError naming ``name``."""
+    try:
+        arr = np.asarray(values, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ContactsError(f"{name} must be numbers of shape (n, 3), got {values!r:.80}") from None
+    if arr.ndim != 2 or arr.shape[1] != 3 or (n is not None and arr.shape[0] != n):
+        want = "(n, 3)" if n is None else f"({n}, 3)"
+        raise ContactsError(f"{name} must have shape {want}, got shape {arr.shape}")
+    bad = ~np.isfinite(arr).all(axis=1)
+    if bad.any():
+        raise ContactsError(f"{name} has a NaN or inf entry in row {np.flatnonzero(bad)[0]}")
+    return arr
+
+
+def _unit(name, normals):
+    """Normalise rows; zero rows raise, non-unit rows warn."""
+    norms = np.linalg.norm(normals, axis=1)
+    if np.any(norms < 1e-12):
+        raise ContactsError(f"{name} row {np.flatnonzero(norms < 1e-12)[0]} is a zero vector; a normal needs a direction")
+    off = np.abs(norms - 1.0) > tol.UNIT_NORM
+    if off.any():
+        warnings.warn(
+            f"{name}: {off.sum()} non-unit normals normalised (lengths {np.round(norms[off][:3], 6).tolist()})",
+            stacklevel=3,
+        )
+    return normals / norms[:, None]
+
+
+@dataclass(frozen=True, init=False)
+class Contacts:
+    """n >= 2 measured contacts in the world frame.
+
+    points : (n, 3) float; finger_normals : (n, 3) float, unit. Give exactly one of
+    ``finger_normals`` (the paper's ñ) or ``object_normals`` (= -ñ) to the constructor.
+    """
+
+    points: np.ndarray
+    finger_normals: np.ndarray
+
+    def __init__(self, points, finger_normals=None, object_normals=None):
+        if (finger_normals is None) == (object_normals is None):
+            raise ContactsError("give exactly one of finger_normals or object_normals")
+        pts = _as_vectors("points", points)
+        if len(pts) < 2:
+            raise ContactsError(f"need at least 2 contacts, got {len(pts)}")
+        if finger_normals is not None:
+            normals = _unit("finger_normals", _as_vectors("finger_normals", finger_normals, len(pts)))
+        else:
+            normals = -_unit("object_normals", _as_vectors("object_normals", object_normals, len(pts)))
+        _check_duplicates(pts)
+        pts.flags.writeable = False
+        normals.flags.writeable = False
+        object.__setattr__(self, "points", pts)
+        object.__setattr__(self, "finger_normals", normals)
+
+    @property
+    def n(self):
+        return len(self.points)
+
+    @property
+    def object_normals(self):
+        """(n, 3) float: the object's outward normals at the contacts, -ñ."""
+        return -self.finger_normals
+
+    def transformed(self, T):
+        """These contacts moved by the rigid transform T (4, 4)."""
+        R, t = T[:3, :3], T[:3, 3]
+        return Contacts(self.points @ R.T + t, finger_normals=self.finger_normals @ R.T)
+
+    def permuted(self, order):
+        """The contacts in another finger order. order : (n,) int."""
+        return Contacts(self.points[order], finger_normals=self.finger_normals[order])
+
+    def to_dict(self):
+        return {"contacts": [{"point": p.tolist(), "finger_normal": n.tolist()}
+                             for p, n in zip(self.points, self.finger_normals)]}
+
+
+def _check_duplicates(points):
+    diff = points[:, None, :] - points[None, :, :]
+    dist = np.sqrt(np.einsum("ijk,ijk->ij", diff, diff))
+    scale = max(float(dist.max()), 1.0)
+    i, j = np.nonzero(np.triu(dist <= 1e-12 * scale, 1))
+    if len(i):
+        raise ContactsError(f"contacts {i[0]} and {j[0]} are at the same point {points[i[0]].tolist()}; each finger needs its own contact")
+
+
+@dataclass(frozen=True)
+class Tolerance:
+    """Pair tolerances σ_Δ (length units) and σ_α (radians) of eq. (5).
+
+    From per-axis sensor noise σ_x and per-axis normal noise σ_n: the difference of
+    two contacts' errors has standard deviation √2·σ along the pair direction, and the
+    tolerance is ``CONFIDENCE_SIGMA`` (3) times that (research/noise_model.md).
+    """
+
+    distance: float
+    angle: float
+    position_noise: float
+    normal_noise: float
+
+    @classmethod
+    def from_noise(cls, position_noise, normal_noise_deg, model_error=0.0):
+        """position_noise σ_x (length), normal_noise_deg σ_n (degrees), model_error added to σ_Δ."""
+        for name, value in (("position_noise", position_noise), ("normal_noise_deg", normal_noise_deg)):
+            if not (np.isfinite(value) and value > 0):
+                raise ContactsError(f"{name} must be a positive number, got {value!r}")
+        if not (np.isfinite(model_error) and model_error >= 0):
+            raise ContactsError(f"model_error must be >= 0, got {model_error!r}")
+        k = tol.CONFIDENCE_SIGMA * np.sqrt(2.0)
+        sigma_n = np.radians(normal_noise_deg)
+        return cls(k * position_noise + model_error, min(k * sigma_n, np.pi), float(position_noise), float(sigma_n))
+
+    def per_contact_bounds(self):
+        """Error bounds per contact (position, angle) that keep every pair within tolerance."""
+        return 0.5 * self.distance, 0.5 * self.angle
+
+
+@dataclass(frozen=True)
+class PairConditions:
+    """Δ̃_ij and α̃_ij for all finger pairs i < j.
+
+    pairs : list of (i, j); distance, angle : (P,) float (angle in radians).
+    """
+
+    pairs: list
+    distance: np.ndarray
+    angle: np.ndarray
+
+
+def pair_conditions(contacts):
+    """Δ̃_ij = |x̃_j - x̃_i| and α̃_ij = arccos(ñ_i·ñ_j) for all i < j (§3, fig. 6)."""
+    pairs = list(combinations(range(contacts.n), 2))
+    i, j = np.array(pairs).T
+    distance = np.linalg.norm(contacts.points[j] - contacts.points[i], axis=1)
+    cos = np.einsum("ij,ij->i", contacts.finger_normals[i], contacts.finger_normals[j])
+    return PairConditions(pairs, distance, np.arccos(np.clip(cos, -1.0, 1.0)))

@@ -1,0 +1,45 @@
+"""`make demo`: the paper's §5 banana protocol on the built-in banana, fast and paper methods."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from contactpose import objects, simulate
+from contactpose.localize import localize
+from contactpose.metrics import rotation_error_deg, translation_error
+from contactpose.model import ObjectModel
+from contactpose.viz import plot_localization
+
+#: Tolerance settings of the demo (the paper gives none): 0.5 mm and 1° sensor noise.
+DEMO_POSITION_NOISE = 0.0005
+DEMO_NORMAL_NOISE_DEG = 1.0
+
+
+def run_demo(seed=0, out_dir="results/demo"):
+    """Build the banana model, grasp it with 4 fingers at facet centroids, localize, draw."""
+    rng = np.random.default_rng(seed)
+    model = ObjectModel.from_mesh(objects.load("banana"))
+    print(f"banana: {model.num_facets} facets, {model.num_pairs} ordered pairs, "
+          f"built in {model.build_seconds['total'] * 1000:.1f} ms")
+    g = simulate.grasp(model, rng, n=4, pose=simulate.paper_pose(), where="centroid")
+    print(f"true facets: {g.facets.tolist()} (roll 5.7°, shift 10 mm in x, y, z)")
+    results = {}
+    for method in ("fast", "paper"):
+        r = localize(model, g.contacts, position_noise=DEMO_POSITION_NOISE,
+                     normal_noise_deg=DEMO_NORMAL_NOISE_DEG, method=method)
+        results[method] = r
+        b = r.best
+        err = (f"rotation error {rotation_error_deg(b.pose, g.pose):.3f}°, "
+               f"translation error {translation_error(b.pose, g.pose) * 1000:.3f} mm") if b else "no pose"
+        print(f"[{method:5s}] status {r.status}, {r.num_hypotheses} hypotheses, best facets "
+              f"{b.facets.tolist() if b else None}, {err}, online {r.timing['total'] * 1000:.2f} ms")
+    os.makedirs(out_dir, exist_ok=True)
+    path = os.path.join(out_dir, "banana_demo.png")
+    best = results["fast"].best
+    if best is not None:
+        plot_localization(model, g.contacts, best.pose, path, true_pose=g.pose,
+                          title=f"banana, 4 contacts: estimated pose (yellow) vs truth (grey), facets {best.facets.tolist()}")
+        print(f"picture: {path}")
+    return 0

@@ -1,0 +1,35 @@
+"""The one error type of contactpose.
+
+Every bad input raises :class:`ContactPoseError` (or a subclass) with a message
+that names the bad value and what was expected. The CLI turns it into exit code
+2 and one line on stderr; anything else is an internal bug and keeps its
+traceback (shown with ``--debug``).
+"""
+
+
+class ContactPoseError(ValueError):
+    """Bad input: the message names the value and the expectation."""
+
+
+class MeshError(ContactPoseError):
+    """A mesh file or mesh array that cannot serve as an object model."""
+
+
+class ContactsError(ContactPoseError):
+    """Contact measurements that are malformed or inconsistent."""
+
+
+class PriorError(ContactPoseError):
+    """A pose prior that is not a rigid transform or has bad sigmas."""
+
+
+class ModelFileError(ContactPoseError):
+    """A model file that is corrupt, of another format version, or mismatched."""
+
+
+class ResourceError(ContactPoseError):
+    """A request that would exceed memory or a configured limit."""
+
+
+class ScanError(ContactPoseError):
+    """A point cloud that cannot be turned into a mesh."""

@@ -1,0 +1,153 @@
+"""Pair characteristics of facets (paper §3.1): Δmin, Δmax and the normal angle α.
+
+Each unordered pair {k, l} of valid facets (k = l included) is stored once;
+the characteristics are symmetric, and the table answers as over ordered pairs.
+
+* Δmax is the largest vertex–vertex distance (exact by convexity).
+* Δmin is the exact triangle–triangle distance (0 when the facets touch or
+  intersect). The paper's vertex-only Δmin (§3.1, erratum 4 in NOTES.md) is kept
+  beside it for ``bounds="paper"``.
+* α is the angle between the unit normals.
+
+Distances are stored as float32 rounded outward (Δmin down, Δmax up), so the
+stored interval always contains the exact one.
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from contactpose.geometry import triangle_pair_bounds
+
+#: Number of facet pairs computed per chunk; bounds the temporary memory.
+CHUNK_PAIRS = 2_000_000
+#: Models with more pairs than this show a progress bar on a terminal.
+PROGRESS_MIN_PAIRS = 5_000_000
+
+
+def round_down32(x):
+    """float64 -> float32, never above the input. x : (p,) float."""
+    y = x.astype(np.float32)
+    over = y.astype(np.float64) > x
+    y[over] = np.nextafter(y[over], np.float32(-np.inf))
+    return y
+
+
+def round_up32(x):
+    """float64 -> float32, never below the input. x : (p,) float."""
+    y = x.astype(np.float32)
+    under = y.astype(np.float64) < x
+    y[under] = np.nextafter(y[under], np.float32(np.inf))
+    return y
+
+
+@dataclass
+class PairFeatures:
+    """Characteristics of the unordered valid facet pairs {k, l}, k <= l.
+
+    k, l : (P,) int32; dmax, dmin_vertex, alpha : (P,) float32;
+    dmin_exact : (P,) float32 or None (models built with ``bounds="paper"``).
+    """
+
+    k: np.ndarray
+    l: np.ndarray
+    dmax: np.ndarray
+    dmin_vertex: np.ndarray
+    dmin_exact: np.ndarray | None
+    alpha: np.ndarray
+
+    @property
+    def num_ordered(self):
+        """Ordered pairs (k, l) these stand for: both orders, the diagonal once."""
+        return int(2 * len(self.k) - np.count_nonzero(self.k == self.l))
+
+    def dmin(self, bounds):
+        """The Δmin array for ``bounds`` "exact" or "paper"."""
+        if bounds == "paper":
+            return self.dmin_vertex
+        if self.dmin_exact is None:
+            from contactpose.errors import ModelFileError
+
+            raise ModelFileError(
+                "this model was built with bounds='paper' and has no exact Δmin; "
+                "rebuild it with bounds='exact' to use the default method"
+            )
+        return self.dmin_exact
+
+    def permuted(self, order):
+        """The same features in another order. order : (P,) int."""
+        pick = (lambda a: None if a is None else a[order])
+        return PairFeatures(*(pick(getattr(self, f)) for f in _FIELDS))
+
+    def to_arrays(self):
+        return {f: getattr(self, f) for f in _FIELDS if getattr(self, f) is not None}
+
+    @classmethod
+    def from_arrays(cls, arrays):
+        return cls(*(arrays.get(f) for f in _FIELDS))
+
+
+_FIELDS = ("k", "l", "dmax", "dmin_vertex", "dmin_exact", "alpha")
+
+
+def unordered_pairs(valid_idx, start, stop):
+    """Pairs (k, l), k <= l, whose first member is valid_idx[start:stop].
+
+    valid_idx : (v,) int, sorted. Returns k, l : (p,) int64, row-major order.
+    """
+    v = len(valid_idx)
+    rows = np.arange(start, stop)
+    counts = v - rows
+    row_of = np.repeat(rows, counts)
+    # column offset within each row: 0..counts-1, shifted to start at the diagonal
+    first = np.cumsum(counts) - counts
+    col = np.arange(counts.sum()) - np.repeat(first, counts) + row_of
+    return valid_idx[row_of], valid_idx[col]
+
+
+def row_chunks(v, chunk_pairs=CHUNK_PAIRS):
+    """Split rows 0..v-1 of the upper triangle into chunks of about chunk_pairs pairs."""
+    counts = v - np.arange(v)
+    cum = np.cumsum(counts)
+    bounds_at = np.searchsorted(cum, np.arange(chunk_pairs, cum[-1], chunk_pairs)) + 1
+    edges = np.unique(np.concatenate([[0], bounds_at, [v]]))
+    return list(zip(edges[:-1], edges[1:]))
+
+
+def pair_features(triangles, planes, *, bounds="exact", progress=None):
+    """Characteristics of all unordered valid facet pairs (§3.1, with erratum 4).
+
+    triangles : (m, 3, 3) float; planes : FacetPlanes; bounds : "exact" | "paper".
+    progress : None shows a bar on a terminal for large models.
+    """
+    valid_idx = np.flatnonzero(planes.valid)
+    v = len(valid_idx)
+    total = v * (v + 1) // 2
+    if progress is None:
+        progress = total >= PROGRESS_MIN_PAIRS and sys.stderr.isatty()
+    parts = []
+    with tqdm(total=total, unit="pair", disable=not progress, desc="pair features") as bar:
+        for start, stop in row_chunks(v):
+            k, l = unordered_pairs(valid_idx, start, stop)
+            parts.append(_chunk_features(triangles, planes.normals, k, l, bounds))
+            bar.update(len(k))
+    columns = list(zip(*parts))
+    joined = [None if col[0] is None else np.concatenate(col) for col in columns]
+    return PairFeatures(*joined)
+
+
+def _chunk_features(triangles, normals, k, l, bounds):
+    dmin_exact, dmin_vertex, dmax = triangle_pair_bounds(triangles, k, l)
+    cos = np.clip(np.einsum("ij,ij->i", normals[k], normals[l]), -1.0, 1.0)
+    return (
+        k.astype(np.int32),
+        l.astype(np.int32),
+        round_up32(dmax),
+        round_down32(dmin_vertex),
+        round_down32(dmin_exact) if bounds == "exact" else None,
+        np.arccos(cos).astype(np.float32),
+    )

@@ -1,0 +1,45 @@
+"""Pose error metrics: rotation and translation error, ADD-S, top-1 success."""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: Default top-1 success thresholds: rotation error in degrees, translation error
+#: as a fraction of the object diameter.
+SUCCESS_ROT_DEG = 5.0
+SUCCESS_TRANS_FRAC = 0.05
+#: Poses whose ADD-S is below this fraction of the diameter place the surface the same way.
+SAME_CLASS_ADDS_FRAC = 0.05
+
+
+def rotation_error_deg(T_est, T_true):
+    """Angle of R_estᵀ R_true in degrees. T_* : (..., 4, 4) -> (...)"""
+    R = np.einsum("...ji,...jk->...ik", T_est[..., :3, :3], T_true[..., :3, :3])
+    cos = (np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def translation_error(T_est, T_true):
+    """|t_est - t_true| in length units. T_* : (..., 4, 4) -> (...)"""
+    return np.linalg.norm(T_est[..., :3, 3] - T_true[..., :3, 3], axis=-1)
+
+
+def pose_success(T_est, T_true, diameter, rot_deg=SUCCESS_ROT_DEG, trans_frac=SUCCESS_TRANS_FRAC):
+    """Rotation error < rot_deg and translation error < trans_frac · diameter."""
+    return (rotation_error_deg(T_est, T_true) < rot_deg) & (translation_error(T_est, T_true) < trans_frac * diameter)
+
+
+def relative_points(T_a, T_b, points):
+    """Object points under T_a, expressed in T_b's object frame: T_b⁻¹ T_a p. points : (N, 3)."""
+    T = np.linalg.solve(T_b, T_a)
+    return points @ T[:3, :3].T + T[:3, 3]
+
+
+def adds(T_a, T_b, points, tree):
+    """ADD-S: mean distance from each surface point under T_a to the surface under T_b.
+
+    points : (N, 3) object-frame surface samples; tree : scipy cKDTree over ``points``.
+    Symmetric placements of a symmetric object have ADD-S near 0.
+    """
+    dist, _ = tree.query(relative_points(T_a, T_b, points))
+    return float(np.mean(dist))

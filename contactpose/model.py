@@ -1,0 +1,340 @@
+"""The object model: facet planes of a triangle mesh (paper §2, eq. 2) and its pair table.
+
+Facet indices are the face order of the mesh as loaded by
+``trimesh.load(path, force="mesh", process=False)``. Degenerate facets are
+reported, marked invalid and left out of the pair table; the others keep
+their indices.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+import time
+import warnings
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import numpy as np
+import trimesh
+
+from contactpose import tol
+from contactpose.errors import MeshError, ModelFileError
+from contactpose.features import PairFeatures, pair_features
+from contactpose.table import DEFAULT_BINS, PairTable, check_bins, check_memory
+
+log = logging.getLogger(__name__)
+
+#: Version of the .npz model file layout. Bump on any incompatible change.
+FORMAT_VERSION = 1
+BOUNDS = ("exact", "paper")
+
+
+@dataclass(frozen=True)
+class FacetPlanes:
+    """Unit outward normals and plane offsets of m facets (eq. 2, erratum 1).
+
+    normals : (m, 3) float, offsets : (m,) float with nᵀx + d = 0 on the plane,
+    areas : (m,) float, valid : (m,) bool (False for degenerate facets).
+    """
+
+    normals: np.ndarray
+    offsets: np.ndarray
+    areas: np.ndarray
+    valid: np.ndarray
+
+
+def facet_planes(triangles, diameter):
+    """Planes of facets (eq. 2) with the normal made a unit vector (erratum 1).
+
+    triangles : (m, 3, 3) float; diameter : float, sets the degeneracy scale.
+    A facet is degenerate when its area or its shortest altitude is near zero.
+    """
+    cross = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
+    double_area = np.linalg.norm(cross, axis=1)
+    longest_edge = np.max(
+        np.linalg.norm(triangles - np.roll(triangles, 1, axis=1), axis=2), axis=1
+    )
+    # altitude onto the longest edge = 2·area / longest edge
+    altitude = np.divide(double_area, longest_edge, out=np.zeros_like(double_area), where=longest_edge > 0)
+    valid = (0.5 * double_area > tol.AREA_REL * diameter**2) & (altitude > tol.ALTITUDE_REL * diameter)
+    normals = np.zeros_like(cross)
+    normals[valid] = cross[valid] / double_area[valid, None]
+    offsets = -np.einsum("ij,ij->i", normals, triangles[:, 0])
+    return FacetPlanes(normals, offsets, 0.5 * double_area, valid)
+
+
+def load_mesh(source):
+    """Load a mesh with trimesh, keeping the file's face order (``process=False``).
+
+    source : path or trimesh.Trimesh. Returns (vertices (V, 3) float, faces (m, 3) int).
+    """
+    if isinstance(source, trimesh.Trimesh):
+        mesh = source
+    else:
+        path = os.fspath(source)
+        if not os.path.isfile(path):
+            raise MeshError(f"mesh file {path!r} does not exist or is not a file")
+        try:
+            mesh = trimesh.load(path, force="mesh", process=False)
+        except Exception as exc:  # trimesh raises many types for unreadable files
+            raise MeshError(f"cannot read {path!r} as a mesh: {exc}") from None
+        if not isinstance(mesh, trimesh.Trimesh):
+            raise MeshError(f"{path!r} holds no triangle mesh (got {type(mesh).__name__})")
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    faces = np.asarray(mesh.faces, dtype=np.int64)
+    return check_mesh_arrays(vertices, faces)
+
+
+def check_mesh_arrays(vertices, faces):
+    """Validate vertex and face arrays; raise MeshError naming what is wrong."""
+    if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
+        raise MeshError(f"mesh needs faces of shape (m, 3) with m >= 1, got shape {faces.shape}")
+    if vertices.ndim != 2 or vertices.shape[1] != 3:
+        raise MeshError(f"mesh needs vertices of shape (V, 3), got shape {vertices.shape}")
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        raise MeshError(
+            f"face indices must lie in [0, {len(vertices) - 1}], got range [{faces.min()}, {faces.max()}]"
+        )
+    bad = ~np.isfinite(vertices).all(axis=1)
+    if bad.any():
+        raise MeshError(
+            f"mesh has {bad.sum()} non-finite vertices (NaN or inf), first at index {np.flatnonzero(bad)[0]}"
+        )
+    return vertices, faces
+
+
+def mesh_diameter(vertices):
+    """Largest distance between two vertices, via the convex hull. vertices : (V, 3)."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    pts = vertices
+    try:
+        pts = vertices[ConvexHull(vertices).vertices]
+    except (QhullError, ValueError):
+        pass  # flat or tiny vertex sets: fall back to all vertices
+    if len(pts) > 4000:
+        pts = pts[:: len(pts) // 4000 + 1]
+    diff = pts[:, None, :] - pts[None, :, :]
+    return float(np.sqrt(np.max(np.einsum("ijk,ijk->ij", diff, diff))))
+
+
+def winding_report(vertices, faces):
+    """Check face winding. Returns a message if normals look inward or inconsistent, else None."""
+    merged = trimesh.Trimesh(vertices, faces, process=False)
+    merged.merge_vertices()
+    if not merged.is_winding_consistent:
+        return "face winding is inconsistent between neighbouring facets"
+    if merged.is_watertight and merged.volume < 0:
+        return "facet normals point inward (closed mesh with negative volume)"
+    return None
+
+
+def mesh_hash(vertices, faces):
+    """SHA-256 of the vertex and face arrays, as stored (float64, int64)."""
+    digest = hashlib.sha256()
+    digest.update(np.ascontiguousarray(vertices, dtype=np.float64).tobytes())
+    digest.update(np.ascontiguousarray(faces, dtype=np.int64).tobytes())
+    return digest.hexdigest()
+
+
+@dataclass
+class ObjectModel:
+    """A mesh refined for contact search: facet planes, pair features and the table K3.
+
+    Build with :meth:`from_mesh`, persist with :meth:`save` / :meth:`load`.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    planes: FacetPlanes
+    table: PairTable
+    bounds: str
+    diameter: float
+    mesh_hash: str
+    build_seconds: dict = field(default_factory=dict)
+
+    # ----------------------------------------------------------------- build
+    @classmethod
+    def from_mesh(cls, mesh, *, bins=DEFAULT_BINS, bounds="exact", progress=None):
+        """Build the model of a mesh (§3.1).
+
+        mesh : path or trimesh.Trimesh; bins : (p_dmax, p_dmin, p_alpha) bin counts;
+        bounds : "exact" (triangle–triangle Δmin) or "paper" (vertex-only Δmin);
+        progress : show a progress bar (default: only on a terminal, for large models).
+        """
+        if bounds not in BOUNDS:
+            raise MeshError(f"bounds must be one of {BOUNDS}, got {bounds!r}")
+        bins = check_bins(bins)
+        start = time.perf_counter()
+        vertices, faces = load_mesh(mesh)
+        triangles = vertices[faces]
+        diameter = mesh_diameter(vertices)
+        if not diameter > 0:
+            raise MeshError("mesh has zero extent (all vertices coincide)")
+        planes = facet_planes(triangles, diameter)
+        _report_facets(planes, vertices, faces)
+        check_memory(int(planes.valid.sum()), bounds)
+        t_planes = time.perf_counter()
+        features = pair_features(triangles, planes, bounds=bounds, progress=progress)
+        t_features = time.perf_counter()
+        table = PairTable.build(features, bins)
+        t_table = time.perf_counter()
+        seconds = {
+            "planes": t_planes - start,
+            "features": t_features - t_planes,
+            "table": t_table - t_features,
+            "total": t_table - start,
+        }
+        return cls(vertices, faces, planes, table, bounds, diameter,
+                   mesh_hash(vertices, faces), seconds)
+
+    # ------------------------------------------------------------ properties
+    @property
+    def num_facets(self):
+        """Number of facets m, degenerate ones included (indices are the file's)."""
+        return len(self.faces)
+
+    @property
+    def features(self):
+        """PairFeatures of the unordered valid pairs, in table order."""
+        return self.table.features
+
+    @property
+    def num_pairs(self):
+        """Number of ordered admissible facet pairs the table answers for (k = l included)."""
+        return self.features.num_ordered
+
+    @cached_property
+    def triangles(self):
+        """(m, 3, 3) float: the facet vertices in the object frame."""
+        return self.vertices[self.faces]
+
+    @cached_property
+    def centroids(self):
+        """(m, 3) float: facet centroids in the object frame."""
+        return self.triangles.mean(axis=1)
+
+    @cached_property
+    def surface_points(self):
+        """(N, 3) float: vertices and centroids of valid facets, for ADD-S (at most ~4,000)."""
+        valid = self.planes.valid
+        pts = np.concatenate([self.vertices[np.unique(self.faces[valid])], self.centroids[valid]])
+        return pts[:: max(1, len(pts) // 4000)]
+
+    @cached_property
+    def surface_tree(self):
+        """scipy cKDTree over :attr:`surface_points`."""
+        from scipy.spatial import cKDTree
+
+        return cKDTree(self.surface_points)
+
+    @property
+    def bins(self):
+        return self.table.bins
+
+    # ----------------------------------------------------------- persistence
+    def save(self, path):
+        """Write the model to one ``.npz`` (no pickle). Returns the path written."""
+        path = os.fspath(path)
+        arrays = {
+            "format_version": np.array(FORMAT_VERSION),
+            "mesh_hash": np.array(self.mesh_hash),
+            "bounds": np.array(self.bounds),
+            "diameter": np.array(self.diameter),
+            "vertices": self.vertices,
+            "faces": self.faces,
+            "normals": self.planes.normals,
+            "offsets": self.planes.offsets,
+            "areas": self.planes.areas,
+            "valid": self.planes.valid,
+        }
+        arrays.update({f"features_{k}": v for k, v in self.features.to_arrays().items()})
+        arrays.update({f"table_{k}": v for k, v in self.table.to_arrays().items()})
+        with open(path, "wb") as fh:
+            np.savez(fh, **arrays)
+        return path
+
+    @classmethod
+    def load(cls, path, *, mesh=None, bins=None, bounds=None):
+        """Read a model written by :meth:`save`.
+
+        mesh, bins, bounds : if given, the model must have been built for this mesh
+        and with these settings, else ModelFileError says what differs.
+        """
+        path = os.fspath(path)
+        data = _read_npz(path)
+        try:
+            model = cls._from_arrays(data)
+        except KeyError as exc:
+            raise ModelFileError(f"model file {path!r} lacks the array {exc.args[0]!r}: corrupt or not a model") from None
+        model._check_expected(path, mesh=mesh, bins=bins, bounds=bounds)
+        return model
+
+    @classmethod
+    def _from_arrays(cls, data):
+        version = int(data["format_version"])
+        if version != FORMAT_VERSION:
+            raise ModelFileError(
+                f"model file has format version {version}, this contactpose reads version {FORMAT_VERSION}; rebuild it with `contactpose build-model`"
+            )
+        vertices, faces = check_mesh_arrays(data["vertices"], data["faces"])
+        planes = FacetPlanes(data["normals"], data["offsets"], data["areas"], data["valid"])
+        features = PairFeatures.from_arrays({k[9:]: v for k, v in data.items() if k.startswith("features_")})
+        table = PairTable.from_arrays({k[6:]: v for k, v in data.items() if k.startswith("table_")}, features)
+        stored_hash = str(data["mesh_hash"])
+        if mesh_hash(vertices, faces) != stored_hash:
+            raise ModelFileError("model file is corrupt: its mesh does not match its stored hash")
+        return cls(vertices, faces, planes, table, str(data["bounds"]),
+                   float(data["diameter"]), stored_hash)
+
+    def _check_expected(self, path, *, mesh, bins, bounds):
+        if mesh is not None:
+            vertices, faces = load_mesh(mesh)
+            if mesh_hash(vertices, faces) != self.mesh_hash:
+                raise ModelFileError(f"model file {path!r} was built for another mesh; rebuild it for this one")
+        if bins is not None and tuple(check_bins(bins)) != tuple(self.bins):
+            raise ModelFileError(f"model file {path!r} was built with bins={tuple(self.bins)}, but bins={tuple(bins)} was asked for")
+        if bounds is not None and bounds != self.bounds:
+            raise ModelFileError(f"model file {path!r} was built with bounds={self.bounds!r}, but bounds={bounds!r} was asked for")
+
+    def describe(self):
+        """A dict of the model's size and settings, for reports."""
+        return {
+            "facets": self.num_facets,
+            "degenerate_facets": int((~self.planes.valid).sum()),
+            "ordered_pairs": self.num_pairs,
+            "bins": list(self.bins),
+            "bounds": self.bounds,
+            "diameter": self.diameter,
+        }
+
+
+def _read_npz(path):
+    """Load every array of an .npz into memory, turning every failure into ModelFileError."""
+    import zipfile
+
+    if not os.path.isfile(path):
+        raise ModelFileError(f"model file {path!r} does not exist")
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            return {key: npz[key] for key in npz.files}
+    except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError) as exc:
+        raise ModelFileError(f"cannot read model file {path!r}: {exc} (truncated, corrupt or not a .npz model)") from None
+
+
+def _report_facets(planes, vertices, faces):
+    """Log and warn about degenerate facets and suspicious winding."""
+    bad = np.flatnonzero(~planes.valid)
+    if len(bad) == len(planes.valid):
+        raise MeshError(f"all {len(bad)} facets are degenerate (zero or near-zero area)")
+    if len(bad):
+        shown = ", ".join(map(str, bad[:10])) + (" ..." if len(bad) > 10 else "")
+        warnings.warn(
+            f"{len(bad)} degenerate facets excluded from pairs (indices kept): {shown}",
+            stacklevel=3,
+        )
+    problem = winding_report(vertices, faces)
+    if problem:
+        warnings.warn(f"{problem}; contact normals will not match (try `--fix-normals`)", stacklevel=3)

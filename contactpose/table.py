@@ -1,0 +1,175 @@
+"""The 3-D hash table K3 of facet pairs (paper eqs. 3–5, errata 2).
+
+Pairs are binned on (Δmax, Δmin, α) with p equal-width bins per axis (eq. 3,
+hash functions eq. 4, clamped to [0, p-1]). The layout is compact: the pair
+features sorted by flat bin key, plus an offsets array with one entry per bin,
+so bin (a, b, c) holds entries ``offsets[key] : offsets[key + 1]``.
+
+A query (eq. 5, read ∪ for ∩) visits the union of admissible bins, then applies
+the exact interval test to each stored pair, and returns ordered pairs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+
+from contactpose import tol
+from contactpose.errors import ContactPoseError, ResourceError
+from contactpose.features import PairFeatures
+
+#: Default bins (p_dmax, p_dmin, p_alpha). α bins of 180°/64 ≈ 2.8° sit just below the
+#: pair angle tolerance at 1° normal noise (4.2°), so an angle query touches 2–4 α bins;
+#: 32 distance bins keep the number of visited bins (≈ p_dmax·p_dmin/4 segments) small
+#: while the exact test removes the bins' excess. research/bins.md gives the measurements.
+DEFAULT_BINS = (32, 32, 64)
+#: Bytes per stored unordered pair at peak during a build: k, l (int32), four float32
+#: characteristics, plus the int64 sort key and int64 permutation and one float32 temporary.
+BUILD_BYTES_PER_PAIR = 8 + 16 + 8 + 8 + 4
+
+
+def check_bins(bins):
+    """Validate bins=(p_dmax, p_dmin, p_alpha): three positive integers."""
+    try:
+        values = tuple(int(b) for b in bins)
+        ok = len(values) == 3 and all(v >= 1 and v == b for v, b in zip(values, bins))
+    except (TypeError, ValueError):
+        ok = False
+    if not ok or any(v > 4096 for v in values):
+        raise ContactPoseError(f"bins must be three integers in [1, 4096] (p_dmax, p_dmin, p_alpha), got {bins!r}")
+    return values
+
+
+def estimate_bytes(num_valid):
+    """Peak memory of building the pair table for num_valid valid facets, in bytes."""
+    pairs = num_valid * (num_valid + 1) // 2
+    return pairs * BUILD_BYTES_PER_PAIR
+
+
+def check_memory(num_valid, bounds="exact"):
+    """Refuse, before building, a table that will not fit in the available memory."""
+    import psutil
+
+    need = estimate_bytes(num_valid)
+    available = psutil.virtual_memory().available
+    if need > 0.8 * available:
+        raise ResourceError(
+            f"the pair table for {num_valid} facets needs about {need / 2**30:.1f} GiB, "
+            f"but only {available / 2**30:.1f} GiB is available; reduce the mesh (decimate) "
+            "or bound the hand span"
+        )
+    return need
+
+
+@dataclass
+class PairTable:
+    """K3: features sorted by bin key, with per-bin offsets.
+
+    features : PairFeatures in key order; offsets : (p1·p2·p3 + 1,) int64;
+    bins : (3,) int; mins, widths : (3,) float (Min and q of eq. 3 per axis).
+    """
+
+    features: PairFeatures
+    offsets: np.ndarray
+    bins: tuple
+    mins: np.ndarray
+    widths: np.ndarray
+
+    @classmethod
+    def build(cls, features, bins):
+        """Sort the pairs into K3 (eqs. 3–4). features : PairFeatures (any order)."""
+        dmin = features.dmin_exact if features.dmin_exact is not None else features.dmin_vertex
+        axes = (features.dmax, dmin, features.alpha)
+        mins = np.array([float(a.min()) for a in axes])
+        widths = np.array([(float(a.max()) - lo) / p for a, lo, p in zip(axes, mins, bins)])
+        widths[widths <= 0] = 1.0  # a constant axis: everything falls into bin 0
+        key = _flat_key(*(bin_index(a, lo, q, p) for a, lo, q, p in zip(axes, mins, widths, bins)), bins)
+        order = np.argsort(key, kind="stable")
+        counts = np.bincount(key, minlength=int(np.prod(bins)))
+        offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+        return cls(features.permuted(order), offsets, tuple(bins), mins, widths)
+
+    def to_arrays(self):
+        return {"offsets": self.offsets, "bins": np.array(self.bins), "mins": self.mins, "widths": self.widths}
+
+    @classmethod
+    def from_arrays(cls, arrays, features):
+        bins = tuple(int(b) for b in arrays["bins"])
+        offsets = arrays["offsets"]
+        if len(offsets) != int(np.prod(bins)) + 1 or offsets[-1] != len(features.k):
+            from contactpose.errors import ModelFileError
+
+            raise ModelFileError("model file is corrupt: the table offsets do not match its pairs")
+        return cls(features, offsets, bins, arrays["mins"], arrays["widths"])
+
+    def query(self, distance, angle, sigma_distance, sigma_angle, bounds="exact"):
+        """Admissible unordered pairs for one finger pair (eq. 5 plus the exact test).
+
+        distance Δ̃ and angle α̃ (radians) of the finger pair, tolerances σ_Δ and σ_α.
+        Returns indices (s,) int64 into ``self.features`` of the pairs with
+        Δmin - σ_Δ <= Δ̃ <= Δmax + σ_Δ and |α - α̃| <= σ_α.
+        """
+        lo_d, hi_d, lo_a, hi_a = query_limits(distance, angle, sigma_distance, sigma_angle)
+        p1, p2, p3 = self.bins
+        a0 = bin_index(lo_d, self.mins[0], self.widths[0], p1)
+        b1 = bin_index(hi_d, self.mins[1], self.widths[1], p2)
+        c0 = bin_index(lo_a, self.mins[2], self.widths[2], p3)
+        c1 = bin_index(hi_a, self.mins[2], self.widths[2], p3)
+        f = self.features
+        return _gather(self.offsets, p2, p3, int(a0), p1 - 1, 0, int(b1), int(c0), int(c1),
+                       f.dmax, f.dmin(bounds), f.alpha, lo_d, hi_d, lo_a, hi_a)
+
+    def ordered_pairs(self, indices):
+        """Expand unordered entries to ordered pairs (k, l) and (l, k). indices : (s,) int."""
+        k = self.features.k[indices]
+        l = self.features.l[indices]
+        off = k != l
+        return np.concatenate([k, l[off]]), np.concatenate([l, k[off]])
+
+    def brute_force(self, distance, angle, sigma_distance, sigma_angle, bounds="exact"):
+        """Reference twin of :meth:`query`: the exact test over every stored pair."""
+        lo_d, hi_d, lo_a, hi_a = query_limits(distance, angle, sigma_distance, sigma_angle)
+        f = self.features
+        ok = (f.dmax >= lo_d) & (f.dmin(bounds) <= hi_d) & (f.alpha >= lo_a) & (f.alpha <= hi_a)
+        return np.flatnonzero(ok)
+
+
+def query_limits(distance, angle, sigma_distance, sigma_angle):
+    """Interval limits of the exact test, with slack for float32 storage."""
+    slack_d = tol.LENGTH_SLACK_REL * max(distance, sigma_distance)
+    lo_d = distance - sigma_distance - slack_d
+    hi_d = distance + sigma_distance + slack_d
+    return lo_d, hi_d, angle - sigma_angle - tol.ANGLE_SLACK, angle + sigma_angle + tol.ANGLE_SLACK
+
+
+def bin_index(values, lo, width, p):
+    """Hash functions t1, t2, t3 (eq. 4), clamped to [0, p-1] (erratum 2)."""
+    t = np.floor((np.asarray(values, dtype=np.float64) - lo) / width)
+    return np.clip(t, 0, p - 1).astype(np.int64)
+
+
+def _flat_key(a, b, c, bins):
+    _, p2, p3 = bins
+    return (a * p2 + b) * p3 + c
+
+
+@numba.njit(cache=True)
+def _gather(offsets, p2, p3, a0, a1, b0, b1, c0, c1, dmax, dmin, alpha, lo_d, hi_d, lo_a, hi_a):
+    """Union of bins a0..a1 × b0..b1 × c0..c1, then the exact interval test."""
+    total = 0
+    for a in range(a0, a1 + 1):
+        for b in range(b0, b1 + 1):
+            base = (a * p2 + b) * p3
+            total += offsets[base + c1 + 1] - offsets[base + c0]
+    out = np.empty(total, np.int64)
+    count = 0
+    for a in range(a0, a1 + 1):
+        for b in range(b0, b1 + 1):
+            base = (a * p2 + b) * p3
+            for e in range(offsets[base + c0], offsets[base + c1 + 1]):
+                if dmax[e] >= lo_d and dmin[e] <= hi_d and alpha[e] >= lo_a and alpha[e] <= hi_a:
+                    out[count] = e
+                    count += 1
+    return out[:count]
