@@ -118,6 +118,8 @@ def build_parser():
     p.add_argument("--runs", type=int, default=25)
     p.add_argument("--models", nargs="*", help="built-in object names (default: banana rock1k)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--paper-cap", type=float, default=20.0, help="stop the paper's method past this many seconds per grasp")
+    p.add_argument("--out", default="results/bench")
     p.set_defaults(func=cmd_bench)
 
     _register_optional(sub)

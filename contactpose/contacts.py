@@ -130,6 +130,12 @@ class Tolerance:
         sigma_n = np.radians(normal_noise_deg)
         return cls(k * position_noise + model_error, min(k * sigma_n, np.pi), float(position_noise), float(sigma_n))
 
+    def direction(self, distance):
+        """σ_h for a finger pair Δ̃ apart: σ_Δ + (Δ̃ + σ_Δ)·σ_α (NOTES.md; a tilt of the
+        measured normal by the angle bound moves the other contact's height by at most
+        the true distance times that angle)."""
+        return self.distance + (distance + self.distance) * self.angle
+
     def per_contact_bounds(self):
         """Error bounds per contact (position, angle) that keep every pair within tolerance."""
         return 0.5 * self.distance, 0.5 * self.angle
@@ -139,12 +145,16 @@ class Tolerance:
 class PairConditions:
     """Δ̃_ij and α̃_ij for all finger pairs i < j.
 
-    pairs : list of (i, j); distance, angle : (P,) float (angle in radians).
+    pairs : list of (i, j); distance, angle : (P,) float (angle in radians);
+    h_ij, h_ji : (P,) float, signed distance of contact j from contact i's tangent
+    plane, -ñ_iᵀ(x̃_j - x̃_i), and the reverse.
     """
 
     pairs: list
     distance: np.ndarray
     angle: np.ndarray
+    h_ij: np.ndarray
+    h_ji: np.ndarray
 
 
 def pair_conditions(contacts):
@@ -152,5 +162,8 @@ def pair_conditions(contacts):
     pairs = list(combinations(range(contacts.n), 2))
     i, j = np.array(pairs).T
     distance = np.linalg.norm(contacts.points[j] - contacts.points[i], axis=1)
-    cos = np.einsum("ij,ij->i", contacts.finger_normals[i], contacts.finger_normals[j])
-    return PairConditions(pairs, distance, np.arccos(np.clip(cos, -1.0, 1.0)))
+    nf, d = contacts.finger_normals, contacts.points[j] - contacts.points[i]
+    cos = np.einsum("ij,ij->i", nf[i], nf[j])
+    h_ij = -np.einsum("ij,ij->i", nf[i], d)
+    h_ji = np.einsum("ij,ij->i", nf[j], d)
+    return PairConditions(pairs, distance, np.arccos(np.clip(cos, -1.0, 1.0)), h_ij, h_ji)

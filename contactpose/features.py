@@ -8,6 +8,10 @@ the characteristics are symmetric, and the table answers as over ordered pairs.
   intersect). The paper's vertex-only Δmin (§3.1, erratum 4 in NOTES.md) is kept
   beside it for ``bounds="paper"``.
 * α is the angle between the unit normals.
+* Direction intervals (Grimson & Lozano-Pérez, *Model-based recognition and
+  localization from sparse range or tactile data*, 1984; NOTES.md): h_kl is the
+  interval of signed distances n_kᵀq + d_k of facet l's vertices q from facet k's
+  plane, and h_lk the same with k and l swapped. Exact by linearity.
 
 Distances are stored as float32 rounded outward (Δmin down, Δmax up), so the
 stored interval always contains the exact one.
@@ -18,10 +22,11 @@ from __future__ import annotations
 import sys
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 from tqdm.auto import tqdm
 
-from contactpose.geometry import triangle_pair_bounds
+from contactpose.geometry import triangle_pair_bounds, triangle_pair_vertex_bounds
 
 #: Number of facet pairs computed per chunk; bounds the temporary memory.
 CHUNK_PAIRS = 2_000_000
@@ -50,7 +55,8 @@ class PairFeatures:
     """Characteristics of the unordered valid facet pairs {k, l}, k <= l.
 
     k, l : (P,) int32; dmax, dmin_vertex, alpha : (P,) float32;
-    dmin_exact : (P,) float32 or None (models built with ``bounds="paper"``).
+    dmin_exact : (P,) float32 or None (models built with ``bounds="paper"``);
+    h_kl, h_lk : (P, 2) float32 direction intervals [lo, hi].
     """
 
     k: np.ndarray
@@ -59,6 +65,8 @@ class PairFeatures:
     dmin_vertex: np.ndarray
     dmin_exact: np.ndarray | None
     alpha: np.ndarray
+    h_kl: np.ndarray
+    h_lk: np.ndarray
 
     @property
     def num_ordered(self):
@@ -91,7 +99,7 @@ class PairFeatures:
         return cls(*(arrays.get(f) for f in _FIELDS))
 
 
-_FIELDS = ("k", "l", "dmax", "dmin_vertex", "dmin_exact", "alpha")
+_FIELDS = ("k", "l", "dmax", "dmin_vertex", "dmin_exact", "alpha", "h_kl", "h_lk")
 
 
 def unordered_pairs(valid_idx, start, stop):
@@ -141,13 +149,50 @@ def pair_features(triangles, planes, *, bounds="exact", progress=None):
 
 
 def _chunk_features(triangles, normals, k, l, bounds):
-    dmin_exact, dmin_vertex, dmax = triangle_pair_bounds(triangles, k, l)
+    if bounds == "exact":
+        dmin_exact, dmin_vertex, dmax = triangle_pair_bounds(triangles, k, l)
+    else:
+        (dmin_vertex, dmax), dmin_exact = triangle_pair_vertex_bounds(triangles, k, l), None
     cos = np.clip(np.einsum("ij,ij->i", normals[k], normals[l]), -1.0, 1.0)
+    h_kl, h_lk = _direction_intervals(triangles, normals, k, l)
     return (
         k.astype(np.int32),
         l.astype(np.int32),
         round_up32(dmax),
         round_down32(dmin_vertex),
-        round_down32(dmin_exact) if bounds == "exact" else None,
+        None if dmin_exact is None else round_down32(dmin_exact),
         np.arccos(cos).astype(np.float32),
+        _round_interval32(h_kl),
+        _round_interval32(h_lk),
     )
+
+
+def _round_interval32(h):
+    """(P, 2) float64 [lo, hi] -> float32 rounded outward."""
+    return np.stack([round_down32(h[:, 0]), round_up32(h[:, 1])], axis=1)
+
+
+@numba.njit(cache=True)
+def _direction_intervals(triangles, normals, k, l):
+    """h_kl, h_lk : (P, 2) [min, max] of n_kᵀ q + d_k over facet l's vertices q, and swapped."""
+    p = len(k)
+    h_kl = np.empty((p, 2))
+    h_lk = np.empty((p, 2))
+    for e in range(p):
+        _signed_range(normals[k[e]], triangles[k[e], 0], triangles[l[e]], h_kl[e])
+        _signed_range(normals[l[e]], triangles[l[e], 0], triangles[k[e]], h_lk[e])
+    return h_kl, h_lk
+
+
+@numba.njit(cache=True)
+def _signed_range(normal, origin, tri, out):
+    """[min, max] over tri's vertices of the signed distance nᵀ(q - origin)."""
+    lo, hi = np.inf, -np.inf
+    for v in range(3):
+        d = 0.0
+        for c in range(3):
+            d += normal[c] * (tri[v, c] - origin[c])
+        lo = min(lo, d)
+        hi = max(hi, d)
+    out[0] = lo
+    out[1] = hi

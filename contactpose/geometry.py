@@ -342,8 +342,9 @@ def _vertex_minmax(tri, k, l):
     return lo, hi
 
 
-# prange halves the wall time of both pair kernels on 2 cores (measured:
-# vertex-only 2.5e7 -> 6e7 pairs/s, exact 1.5e6 -> 3e6 pairs/s).
+# prange halves the wall time of both pair kernels on 2 idle cores (measured:
+# vertex-only 2.5e7 -> 6e7 pairs/s, exact 1.5e6 -> 3e6 pairs/s); with the
+# other core busy it matches the serial loop.
 
 @njit(cache=True, parallel=True)
 def _pair_vertex_kernel(tri, ks, ls, dmin_v, dmax):
@@ -449,8 +450,29 @@ def triangle_pair_vertex_bounds(triangles, k, l):
     triangles, k, l = _pairs(triangles, k, l)
     dmin_v = np.empty(len(k))
     dmax = np.empty(len(k))
-    _pair_vertex_kernel(triangles, k, l, dmin_v, dmax)
+    with _threads_for(len(k)):
+        _pair_vertex_kernel(triangles, k, l, dmin_v, dmax)
     return dmin_v, dmax
+
+
+#: Batches smaller than this run on one thread: waking the thread pool costs more
+#: than it saves, and on 2 cores it contends with numpy's BLAS threads.
+PARALLEL_MIN_PAIRS = 50_000
+
+
+class _threads_for:
+    """Context: numba threads for a batch of p pairs (one thread for small batches)."""
+
+    def __init__(self, p):
+        self.p = p
+
+    def __enter__(self):
+        self.saved = numba.get_num_threads()
+        if self.p < PARALLEL_MIN_PAIRS:
+            numba.set_num_threads(1)
+
+    def __exit__(self, *exc):
+        numba.set_num_threads(self.saved)
 
 
 def triangle_pair_bounds(triangles, k, l):
@@ -467,5 +489,6 @@ def triangle_pair_bounds(triangles, k, l):
     dmin = np.empty(len(k))
     dmin_v = np.empty(len(k))
     dmax = np.empty(len(k))
-    _pair_bounds_kernel(triangles, k, l, dmin, dmin_v, dmax)
+    with _threads_for(len(k)):
+        _pair_bounds_kernel(triangles, k, l, dmin, dmin_v, dmax)
     return dmin, dmin_v, dmax

@@ -15,6 +15,9 @@ from __future__ import annotations
 
 import numpy as np
 
+#: Membership tests use a dense bitmap up to this many facet pairs (bytes), else sorted keys.
+BITMAP_MAX_CELLS = 16_000_000
+
 
 class PairSet:
     """The admissible ordered pairs of one finger pair, indexed both ways.
@@ -33,13 +36,22 @@ class PairSet:
         return len(self.first)
 
     def contains(self, a, b):
-        """Whether each (a[r], b[r]) is in the set. a, b : (r,) int -> (r,) bool."""
+        """Whether each (a[r], b[r]) is in the set. a, b : (r,) int -> (r,) bool.
+
+        A dense m×m bitmap answers when it is small, else binary search on sorted keys.
+        """
+        key = a * self.m + b
+        if self.m * self.m <= BITMAP_MAX_CELLS:
+            if self._keys is None:
+                self._keys = np.zeros(self.m * self.m, dtype=bool)
+                self._keys[self.first * self.m + self.second] = True
+            return self._keys[key]
         if self._keys is None:
             self._keys = np.sort(self.first * self.m + self.second)
-        key = a * self.m + b
-        pos = np.searchsorted(self._keys, key)
-        pos[pos == len(self._keys)] = 0
-        return self._keys[pos] == key if len(self._keys) else np.zeros(len(key), bool)
+        if len(self._keys) == 0:
+            return np.zeros(len(key), dtype=bool)
+        pos = np.minimum(np.searchsorted(self._keys, key), len(self._keys) - 1)
+        return self._keys[pos] == key
 
     def neighbours(self, reverse=False):
         """CSR adjacency (indptr (m+1,), targets) from first to second (or back)."""
@@ -52,16 +64,19 @@ class PairSet:
         return self._csr[reverse]
 
 
-def admissible_pairs(model, conditions, tolerance, bounds="exact"):
+def admissible_pairs(model, conditions, tolerance, bounds="exact", direction=True):
     """S_ij for all finger pairs i < j (eq. 5 with ∪, then the exact interval test).
 
+    direction : also apply the direction constraint (the default method; not the paper's).
     Returns dict (i, j) -> PairSet.
     """
     table = model.table
+    c = conditions
     result = {}
-    for (i, j), dist, ang in zip(conditions.pairs, conditions.distance, conditions.angle):
-        idx = table.query(float(dist), float(ang), tolerance.distance, tolerance.angle, bounds)
-        k, l = table.ordered_pairs(idx)
+    for e, (i, j) in enumerate(c.pairs):
+        dist = float(c.distance[e])
+        h = (float(c.h_ij[e]), float(c.h_ji[e]), tolerance.direction(dist)) if direction else None
+        k, l = table.query_pairs(dist, float(c.angle[e]), tolerance.distance, tolerance.angle, bounds, h)
         result[(i, j)] = PairSet(k, l, model.num_facets)
     return result
 

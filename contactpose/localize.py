@@ -19,7 +19,7 @@ from contactpose import residuals as res
 from contactpose.contacts import Contacts, Tolerance, pair_conditions
 from contactpose.errors import ContactPoseError, PriorError
 from contactpose.hypotheses import admissible_pairs, join_tuples, join_tuples_paper
-from contactpose.metrics import SAME_CLASS_ADDS_FRAC, adds
+from contactpose.metrics import SAME_CLASS_ADDS_FRAC, adds, displacement_bound
 from contactpose.solvers.closed_form import PoseFit, fit_poses
 from contactpose.solvers.lm import fit_lm_all
 
@@ -235,7 +235,7 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
     tolerance = Tolerance.from_noise(position_noise, normal_noise_deg, model_error)
     clock = [time.perf_counter()]
     bounds = "exact" if method == "fast" else "paper"
-    S = admissible_pairs(model, pair_conditions(contacts), tolerance, bounds)
+    S = admissible_pairs(model, pair_conditions(contacts), tolerance, bounds, direction=method == "fast")
     clock.append(time.perf_counter())
     join = join_tuples if method == "fast" else join_tuples_paper
     facets = join(S, contacts.n)
@@ -322,7 +322,10 @@ def _status(model, contacts, arrays, tolerance):
     fits = np.flatnonzero(arrays.chi2 <= fit_threshold(contacts.n))[:MAX_AMBIGUITY_CHECKS]
     best = arrays.poses[0]
     limit = SAME_CLASS_ADDS_FRAC * model.diameter
+    radius = model.surface_radius
     for i in fits[fits > 0]:
+        if displacement_bound(arrays.poses[i], best, radius) <= limit:
+            continue  # the same placement: ADD-S cannot exceed the displacement
         if adds(arrays.poses[i], best, model.surface_points, model.surface_tree) > limit:
             return "ambiguous", f"hypothesis {i} is a distinct pose that also fits within noise; add a prior or a touch"
     return "ok", ""

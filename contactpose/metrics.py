@@ -35,6 +35,14 @@ def relative_points(T_a, T_b, points):
     return points @ T[:3, :3].T + T[:3, 3]
 
 
+def displacement_bound(T_a, T_b, radius):
+    """Upper bound on how far any point within ``radius`` of the object origin moves
+    between T_a and T_b: 2 sin(θ/2)·radius + |Δt| (so also an upper bound on ADD-S)."""
+    T = np.linalg.solve(T_b, T_a)
+    cos = np.clip((np.trace(T[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
+    return float(np.sqrt(2.0 * (1.0 - cos)) * radius + np.linalg.norm(T[:3, 3]))
+
+
 def adds(T_a, T_b, points, tree):
     """ADD-S: mean distance from each surface point under T_a to the surface under T_b.
 

@@ -218,10 +218,15 @@ class ObjectModel:
 
     @cached_property
     def surface_points(self):
-        """(N, 3) float: vertices and centroids of valid facets, for ADD-S (at most ~4,000)."""
+        """(N, 3) float: vertices and centroids of valid facets, for ADD-S (about 1,000 at most)."""
         valid = self.planes.valid
         pts = np.concatenate([self.vertices[np.unique(self.faces[valid])], self.centroids[valid]])
-        return pts[:: max(1, len(pts) // 4000)]
+        return pts[:: max(1, len(pts) // 1000)]
+
+    @cached_property
+    def surface_radius(self):
+        """Largest distance of a surface point from the object-frame origin."""
+        return float(np.linalg.norm(self.surface_points, axis=1).max())
 
     @cached_property
     def surface_tree(self):

@@ -75,10 +75,18 @@ class ScanOptions:
     #: A cloud whose smallest principal standard deviation is below this
     #: fraction of its largest is planar (or linear) and is refused.
     planar_ratio: float = 0.01
-    #: Statistical outlier removal: neighbours looked at, and the cut in standard
-    #: deviations of the mean neighbour distance. ``outlier_std=0`` disables it.
+    #: Radius outlier removal: a point needs ``outlier_min_neighbors`` others
+    #: within ``outlier_radius`` (default ``outlier_radius_spacings`` times the
+    #: 90th percentile of the nearest-neighbour distance, so sparse but genuine
+    #: regions pass); ``outlier_min_neighbors=0`` disables it.
+    outlier_radius: float | None = None
+    outlier_radius_spacings: float = 4.0
+    outlier_min_neighbors: int = 5
+    #: Statistical outlier removal (off by default: on scans of uneven density it
+    #: removes the sparse but genuine regions, and the mesh gets holes there):
+    #: neighbours looked at, and the cut in standard deviations; 0 disables it.
     outlier_neighbors: int = 20
-    outlier_std: float = 2.0
+    outlier_std: float = 0.0
     #: Voxel edge for downsampling; default ``diameter * voxel_rel``; 0 disables.
     voxel: float | None = None
     voxel_rel: float = 1.0 / 150.0
@@ -124,6 +132,7 @@ class ScanReport:
     n_cropped: int
     n_filtered: int
     n_downsampled: int
+    n_faces_reconstructed: int
     n_faces: int
     n_vertices: int
     watertight: bool
@@ -156,7 +165,8 @@ class ScanReport:
         lines = [
             f"points: {self.n_input} read, {self.n_finite} finite, {self.n_cropped} after crop, "
             f"{self.n_filtered} after outlier removal, {self.n_downsampled} after downsampling",
-            f"mesh ({self.method}): {self.n_faces} facets, {self.n_vertices} vertices, "
+            f"mesh ({self.method}): {self.n_faces_reconstructed} facets reconstructed, "
+            f"{self.n_faces} facets and {self.n_vertices} vertices out, "
             f"{'watertight' if self.watertight else 'not watertight'}"
             f"{', orientation flipped to outward' if self.flipped else ''}",
             f"cloud -> mesh distance over {self.distance_points} points "
@@ -232,7 +242,12 @@ def scan_to_mesh(cloud_or_path, options: ScanOptions | None = None, *, progress:
             measured = points
         with step("outliers"):
             pcd = _to_pcd(points, normals)
-            if opt.outlier_std and opt.outlier_std > 0:
+            if opt.outlier_min_neighbors > 0:
+                out_radius = opt.outlier_radius or opt.outlier_radius_spacings * float(
+                    np.quantile(pcd.compute_nearest_neighbor_distance(), 0.9))
+                params["outlier_radius"] = out_radius
+                pcd, _ = pcd.remove_radius_outlier(int(opt.outlier_min_neighbors), float(out_radius))
+            if opt.outlier_std > 0:
                 pcd, _ = pcd.remove_statistical_outlier(int(opt.outlier_neighbors), float(opt.outlier_std))
             filtered = np.asarray(pcd.points)
             check_cloud(filtered, opt.min_points, opt.planar_ratio, what="cloud after outlier removal")
@@ -255,6 +270,7 @@ def scan_to_mesh(cloud_or_path, options: ScanOptions | None = None, *, progress:
             mesh = remove_small_components(mesh, opt.min_component)
             mesh = clean_mesh(mesh)
             _check_mesh(mesh, f"{opt.method} reconstruction")
+            n_reconstructed = len(mesh.triangles)
         with step("decimate"):
             if opt.faces is not None and len(mesh.triangles) > opt.faces:
                 mesh = mesh.simplify_quadric_decimation(int(opt.faces))
@@ -271,7 +287,7 @@ def scan_to_mesh(cloud_or_path, options: ScanOptions | None = None, *, progress:
 
     report = ScanReport(
         n_input=n_input, n_finite=int(finite.sum()), n_cropped=n_cropped, n_filtered=n_filtered,
-        n_downsampled=len(pcd.points), n_faces=len(tm.faces), n_vertices=len(tm.vertices),
+        n_downsampled=len(pcd.points), n_faces_reconstructed=n_reconstructed, n_faces=len(tm.faces), n_vertices=len(tm.vertices),
         watertight=bool(tm.is_watertight), flipped=flipped, method=opt.method, diameter=diameter,
         distance_points=n_used,
         distance_mean=float(dist.mean()), distance_p95=float(np.percentile(dist, 95)),
@@ -547,8 +563,10 @@ def add_scan_options(parser, prefix: str = "") -> None:
     add("voxel", type=float, metavar="V", help="voxel size for downsampling (default diameter/150; 0: off)")
     add("depth", type=int, metavar="D", help="Poisson octree depth (default: cell about one voxel)")
     add("density-quantile", type=float, metavar="Q", help="Poisson trimming quantile (default 0.05)")
-    add("outlier-std", type=float, metavar="S", help="outlier cut in std of neighbour distance (default 2; 0: off)")
-    add("outlier-neighbors", type=int, metavar="K", help="neighbours for outlier removal (default 20)")
+    add("outlier-radius", type=float, metavar="R", help="radius outlier removal radius (default 4 x p90 neighbour spacing)")
+    add("outlier-min-neighbors", type=int, metavar="K", help="neighbours needed within the radius (default 5; 0: off)")
+    add("outlier-std", type=float, metavar="S", help="statistical outlier cut in std (default 0: off)")
+    add("outlier-neighbors", type=int, metavar="K", help="neighbours for statistical outlier removal (default 20)")
     add("normal-radius", type=float, metavar="R", help="normal estimation radius (default 3 voxels)")
     add("normals", choices=NORMAL_MODES, help="normals: estimate, orient by given (auto), or use given")
     add("bpa-radii", type=float, nargs="+", metavar="R", help="ball-pivoting radii (default spacing x 1, 2, 4)")

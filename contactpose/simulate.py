@@ -133,3 +133,10 @@ def grasp(model, rng, *, n=4, pose=None, facets=None, where="area", position_noi
     points = p_obj @ R.T + t + _bounded_gaussian(rng, len(facets), 3, position_noise, pos_bound)
     normals = perturb_normals(model.planes.normals[facets] @ R.T, np.radians(normal_noise_deg), rng, ang_bound)
     return Grasp(Contacts(points, object_normals=normals), pose, facets, p_obj)
+
+
+def scan(mesh, rng, **options):
+    """Simulated range scan of a mesh (see :func:`contactpose.scanner.scan`); needs Open3D."""
+    from contactpose.scanner import scan as _scan
+
+    return _scan(mesh, rng, **options)

@@ -111,22 +111,27 @@ class PairTable:
         Returns indices (s,) int64 into ``self.features`` of the pairs with
         Δmin - σ_Δ <= Δ̃ <= Δmax + σ_Δ and |α - α̃| <= σ_α.
         """
-        lo_d, hi_d, lo_a, hi_a = query_limits(distance, angle, sigma_distance, sigma_angle)
-        p1, p2, p3 = self.bins
-        a0 = bin_index(lo_d, self.mins[0], self.widths[0], p1)
-        b1 = bin_index(hi_d, self.mins[1], self.widths[1], p2)
-        c0 = bin_index(lo_a, self.mins[2], self.widths[2], p3)
-        c1 = bin_index(hi_a, self.mins[2], self.widths[2], p3)
+        limits = query_limits(distance, angle, sigma_distance, sigma_angle)
         f = self.features
-        return _gather(self.offsets, p2, p3, int(a0), p1 - 1, 0, int(b1), int(c0), int(c1),
-                       f.dmax, f.dmin(bounds), f.alpha, lo_d, hi_d, lo_a, hi_a)
+        return _gather(self.offsets, np.asarray(self.bins), self.mins, self.widths,
+                       f.dmax, f.dmin(bounds), f.alpha, *limits)
 
-    def ordered_pairs(self, indices):
+    def query_pairs(self, distance, angle, sigma_distance, sigma_angle, bounds="exact", direction=None):
+        """Like :meth:`query`, expanded to ordered pairs: (first (s,) int64, second (s,) int64).
+
+        direction : None, or (h_ij, h_ji, σ_h): measured signed distances of contact j from
+        contact i's tangent plane and back; an ordered pair (k, l) is kept only if
+        h_ij ∈ h_kl ± σ_h and h_ji ∈ h_lk ± σ_h (the direction constraint).
+        """
+        idx = self.query(distance, angle, sigma_distance, sigma_angle, bounds)
+        return self.ordered_pairs(idx, direction)
+
+    def ordered_pairs(self, indices, direction=None):
         """Expand unordered entries to ordered pairs (k, l) and (l, k). indices : (s,) int."""
-        k = self.features.k[indices]
-        l = self.features.l[indices]
-        off = k != l
-        return np.concatenate([k, l[off]]), np.concatenate([l, k[off]])
+        f = self.features
+        use = direction is not None
+        h_ij, h_ji, sigma_h = direction if use else (0.0, 0.0, 0.0)
+        return _expand_ordered(f.k, f.l, indices, f.h_kl, f.h_lk, use, h_ij, h_ji, sigma_h)
 
     def brute_force(self, distance, angle, sigma_distance, sigma_angle, bounds="exact"):
         """Reference twin of :meth:`query`: the exact test over every stored pair."""
@@ -156,20 +161,60 @@ def _flat_key(a, b, c, bins):
 
 
 @numba.njit(cache=True)
-def _gather(offsets, p2, p3, a0, a1, b0, b1, c0, c1, dmax, dmin, alpha, lo_d, hi_d, lo_a, hi_a):
-    """Union of bins a0..a1 × b0..b1 × c0..c1, then the exact interval test."""
+def _bin(value, lo, width, p):
+    """Scalar hash function t (eq. 4), clamped to [0, p-1]."""
+    t = np.floor((value - lo) / width)
+    return int(min(max(t, 0.0), p - 1.0))
+
+
+@numba.njit(cache=True)
+def _gather(offsets, bins, mins, widths, dmax, dmin, alpha, lo_d, hi_d, lo_a, hi_a):
+    """Union of the admissible bins of eq. (5), then the exact interval test.
+
+    Bins: a in [t1(Δ̃ - σ_Δ), p1 - 1], b in [0, t2(Δ̃ + σ_Δ)], c in [t3(α̃ - σ_α), t3(α̃ + σ_α)].
+    """
+    p1, p2, p3 = bins[0], bins[1], bins[2]
+    a0 = _bin(lo_d, mins[0], widths[0], p1)
+    b1 = _bin(hi_d, mins[1], widths[1], p2)
+    c0 = _bin(lo_a, mins[2], widths[2], p3)
+    c1 = _bin(hi_a, mins[2], widths[2], p3)
     total = 0
-    for a in range(a0, a1 + 1):
-        for b in range(b0, b1 + 1):
+    for a in range(a0, p1):
+        for b in range(0, b1 + 1):
             base = (a * p2 + b) * p3
             total += offsets[base + c1 + 1] - offsets[base + c0]
     out = np.empty(total, np.int64)
     count = 0
-    for a in range(a0, a1 + 1):
-        for b in range(b0, b1 + 1):
+    for a in range(a0, p1):
+        for b in range(0, b1 + 1):
             base = (a * p2 + b) * p3
             for e in range(offsets[base + c0], offsets[base + c1 + 1]):
                 if dmax[e] >= lo_d and dmin[e] <= hi_d and alpha[e] >= lo_a and alpha[e] <= hi_a:
                     out[count] = e
                     count += 1
     return out[:count]
+
+
+@numba.njit(cache=True)
+def _within(value, interval, slack):
+    return interval[0] - slack <= value <= interval[1] + slack
+
+
+@numba.njit(cache=True)
+def _expand_ordered(k, l, indices, h_kl, h_lk, use_direction, h_ij, h_ji, sigma_h):
+    """(k, l) and, off the diagonal, (l, k) for each stored unordered pair,
+    optionally kept only where the direction intervals admit (h_ij, h_ji)."""
+    s = len(indices)
+    first = np.empty(2 * s, np.int64)
+    second = np.empty(2 * s, np.int64)
+    count = 0
+    for e in indices:
+        if not use_direction or (_within(h_ij, h_kl[e], sigma_h) and _within(h_ji, h_lk[e], sigma_h)):
+            first[count] = k[e]
+            second[count] = l[e]
+            count += 1
+        if k[e] != l[e] and (not use_direction or (_within(h_ij, h_lk[e], sigma_h) and _within(h_ji, h_kl[e], sigma_h))):
+            first[count] = l[e]
+            second[count] = k[e]
+            count += 1
+    return first[:count], second[:count]

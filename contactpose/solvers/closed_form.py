@@ -51,35 +51,6 @@ class PoseFit:
         return T
 
 
-def wahba(obj_vectors, world_vectors):
-    """Rotations R minimising Σ_i |R a_i - b_i|² (Wahba's problem, SVD with det fix).
-
-    obj_vectors a : (H, n, 3); world_vectors b : (H, n, 3) or (n, 3)  ->  (H, 3, 3)
-    """
-    B = np.einsum("...ni,hnj->hij", world_vectors, obj_vectors)
-    U, _, Vt = np.linalg.svd(B)
-    d = np.sign(np.linalg.det(U @ Vt))
-    d[d == 0] = 1.0
-    U[:, :, 2] *= d[:, None]
-    return U @ Vt
-
-
-def least_squares_translation(A, b, t0, min_eig):
-    """argmin_t |A t - b|², taken nearest t0 along weakly determined directions.
-
-    A : (H, n, 3) or (n, 3); b : (H, n); t0 : (H, 3); min_eig : eigenvalues of AᵀA
-    at or below it count as undetermined.  ->  t (H, 3)
-    """
-    A = np.broadcast_to(A, b.shape + (3,))
-    M = np.einsum("hni,hnj->hij", A, A)
-    g = np.einsum("hni,hn->hi", A, b)
-    lam, V = np.linalg.eigh(M)
-    ok = lam > min_eig
-    residual = g - np.einsum("hij,hj->hi", M, t0)
-    coef = np.einsum("hji,hj->hi", V, residual) / np.where(ok, lam, 1.0) * ok
-    return t0 + np.einsum("hij,hj->hi", V, coef)
-
-
 def fit_poses(obj_normals, obj_offsets, points, finger_normals, *, cost="invariant",
               angle_tol, t0=None, centroids=None):
     """Closed-form poses of H hypotheses.
@@ -90,34 +61,46 @@ def fit_poses(obj_normals, obj_offsets, points, finger_normals, *, cost="invaria
     a direction free; t0 : (H, 3) reference translation (default: the one that puts
     the facet centroids' mean on the contacts' mean; centroids : (H, n, 3) needed then).
     """
-    h, n, _ = obj_normals.shape
+    if cost not in ("invariant", "paper"):
+        raise ValueError(f"cost must be 'invariant' or 'paper', got {cost!r}")
+    n = obj_normals.shape[1]
+    min_eig = n * np.sin(angle_tol) ** 2
     R = wahba(obj_normals, -finger_normals)
     if t0 is None:
         t0 = points.mean(axis=0)[None] - np.einsum("hij,hj->hi", R, centroids.mean(axis=1))
-    min_eig = n * np.sin(angle_tol) ** 2
+    # Σ n nᵀ in the object frame: its eigenvectors are the (un)determined directions
+    lam, V = np.linalg.eigh(np.einsum("hni,hnj->hij", obj_normals, obj_normals))
+    world = np.einsum("hij,hjk->hik", R, V)  # columns: world eigenvectors
     if cost == "invariant":
+        # rows (R n_k)ᵀ: AᵀA = R (Σ n nᵀ) Rᵀ shares the eigenvalues, eigenvectors R V
         A = np.einsum("hij,hnj->hni", R, obj_normals)
         b = np.einsum("hni,ni->hn", A, points) + obj_offsets
-    elif cost == "paper":
-        A = finger_normals
-        b = np.einsum("ni,ni->n", finger_normals, points)[None] - obj_offsets
+        t = _solve_along(A, b, t0, lam, world, min_eig)
     else:
-        raise ValueError(f"cost must be 'invariant' or 'paper', got {cost!r}")
-    t = least_squares_translation(A, b, t0, min_eig)
-    return PoseFit(R, t, *free_directions(R, obj_normals, min_eig))
+        A = np.broadcast_to(finger_normals, obj_normals.shape)
+        b = np.einsum("ni,ni->n", finger_normals, points)[None] - obj_offsets
+        lam_p, V_p = np.linalg.eigh(finger_normals.T @ finger_normals)
+        t = _solve_along(A, b, t0, np.broadcast_to(lam_p, lam.shape), np.broadcast_to(V_p, world.shape), min_eig)
+    rows = world.transpose(0, 2, 1)
+    return PoseFit(R, t, rows, lam <= min_eig, rows[:, 2], lam[:, 1] <= min_eig)
 
 
-def free_directions(R, obj_normals, min_eig):
-    """Directions the hypothesised normals leave undetermined, in the world frame.
+def wahba(obj_vectors, world_vectors):
+    """Rotations R minimising Σ_i |R a_i - b_i|² (Wahba's problem, SVD with det fix).
 
-    R : (H, 3, 3); obj_normals : (H, n, 3).
-    Returns translation dirs (H, 3, 3) rows, their mask (H, 3), rotation axis (H, 3), its mask (H,).
-    The translation is free along eigenvectors of Σ n nᵀ with small eigenvalue; the
-    rotation is free when all normals are (nearly) parallel, about their common axis.
+    obj_vectors a : (H, n, 3); world_vectors b : (n, 3)  ->  (H, 3, 3)
     """
-    N = np.einsum("hni,hnj->hij", obj_normals, obj_normals)
-    lam, V = np.linalg.eigh(N)  # ascending
-    world = np.einsum("hij,hjk->hki", R, V)  # rows: world eigenvectors
-    trans_mask = lam <= min_eig
-    rot_mask = lam[:, 1] <= min_eig
-    return world, trans_mask, world[:, 2], rot_mask
+    B = np.einsum("ni,hnj->hij", world_vectors, obj_vectors)
+    U, _, Vt = np.linalg.svd(B)
+    flip = np.linalg.det(U) * np.linalg.det(Vt) < 0
+    U[flip, :, 2] *= -1.0
+    return U @ Vt
+
+
+def _solve_along(A, b, t0, lam, V, min_eig):
+    """argmin_t |A t - b|² with AᵀA = V diag(lam) Vᵀ, moving from t0 only along
+    eigenvectors whose eigenvalue exceeds min_eig. A : (H, n, 3), b : (H, n) -> (H, 3)"""
+    residual = np.einsum("hni,hn->hi", A, b - np.einsum("hni,hi->hn", A, t0))
+    coef = np.einsum("hji,hj->hi", V, residual)
+    coef = np.where(lam > min_eig, coef / np.where(lam > min_eig, lam, 1.0), 0.0)
+    return t0 + np.einsum("hij,hj->hi", V, coef)

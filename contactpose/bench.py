@@ -1,0 +1,146 @@
+"""`contactpose bench`: offline and online timings, the default method beside the paper's.
+
+For each model: build time and peak memory (a fresh subprocess per build, so the
+peak is the build's own), then the online stages (S_ij, tree, pose, ranking) over
+random 4-finger grasps, for ``method="fast"`` and ``method="paper"`` on the same
+grasps. The paper's method is skipped once one grasp exceeds ``--paper-cap`` seconds.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+from contactpose import objects, simulate
+from contactpose.localize import localize
+from contactpose.model import ObjectModel
+
+STAGES = ("pairs", "tree", "pose", "rank", "total")
+#: Sensor noise of the benchmark grasps: 0.5 mm and 1°, bounded within tolerance.
+POSITION_NOISE = 0.0005
+NORMAL_NOISE_DEG = 1.0
+#: Warm-up grasps before timing (numba's cached kernels load on first call).
+WARMUP = 3
+
+
+def machine_description():
+    """CPU model, core count and memory, for the results."""
+    import psutil
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as fh:
+            cpu = next(line.split(":", 1)[1].strip() for line in fh if line.startswith("model name"))
+    except (OSError, StopIteration):
+        pass
+    return {"cpu": cpu, "cores": os.cpu_count(), "memory_gib": round(psutil.virtual_memory().total / 2**30, 1),
+            "python": platform.python_version(), "numpy": np.__version__}
+
+
+def build_in_subprocess(name, repeats):
+    """Median build seconds over ``repeats`` and the peak RSS of the process, in MiB."""
+    code = (
+        "import resource, time, json, warnings, numpy as np\n"
+        "warnings.simplefilter('ignore')\n"
+        "from contactpose import objects\nfrom contactpose.model import ObjectModel\n"
+        f"mesh = objects.load({name!r}); ObjectModel.from_mesh(mesh)\n"
+        "ts = []\n"
+        f"for _ in range({repeats}):\n"
+        "    t = time.perf_counter(); ObjectModel.from_mesh(mesh); ts.append(time.perf_counter() - t)\n"
+        "print(json.dumps({'median': float(np.median(ts)), 'peak_mib': resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def grasps_for(model, name, runs, rng):
+    """The paper's protocol on the banana (§5), bounded-noise random grasps elsewhere."""
+    if name == "banana":
+        return [simulate.grasp(model, rng, n=4, pose=simulate.paper_pose(), where="centroid") for _ in range(runs)]
+    return [simulate.grasp(model, rng, n=4, position_noise=POSITION_NOISE, normal_noise_deg=NORMAL_NOISE_DEG,
+                           noise="bounded") for _ in range(runs)]
+
+
+def time_method(model, grasps, method, cap):
+    """Per-grasp stage timings and hypothesis counts; stops early past ``cap`` seconds."""
+    rows = []
+    for g in grasps[:WARMUP]:
+        localize(model, g.contacts, position_noise=POSITION_NOISE, normal_noise_deg=NORMAL_NOISE_DEG, method=method)
+    for g in grasps:
+        r = localize(model, g.contacts, position_noise=POSITION_NOISE, normal_noise_deg=NORMAL_NOISE_DEG, method=method)
+        rows.append({**{s: r.timing[s] for s in STAGES}, "hypotheses": r.num_hypotheses,
+                     "true_found": bool(any(np.array_equal(h, g.facets) for h in r.hypotheses.arrays.facets))})
+        if r.timing["total"] > cap:
+            break
+    return rows
+
+
+def summarize(rows):
+    """median / p95 / max per stage (ms) and hypothesis counts."""
+    out = {}
+    for s in STAGES:
+        v = np.array([r[s] for r in rows]) * 1000
+        out[s] = {"median_ms": float(np.median(v)), "p95_ms": float(np.percentile(v, 95)), "max_ms": float(v.max())}
+    h = np.array([r["hypotheses"] for r in rows])
+    out["hypotheses"] = {"median": float(np.median(h)), "p95": float(np.percentile(h, 95)), "max": int(h.max())}
+    out["runs"] = len(rows)
+    out["recall"] = float(np.mean([r["true_found"] for r in rows]))
+    return out
+
+
+def bench_model(name, runs, seed, cap):
+    build = build_in_subprocess(name, repeats=7)
+    model = ObjectModel.from_mesh(objects.load(name))
+    grasps = grasps_for(model, name, runs, np.random.default_rng(seed))
+    fast = summarize(time_method(model, grasps, "fast", cap))
+    paper_rows = time_method(model, grasps, "paper", cap)
+    paper = summarize(paper_rows)
+    complete = len(paper_rows) == len(grasps)
+    ratio = paper["total"]["median_ms"] / fast["total"]["median_ms"]
+    return {"model": name, "facets": model.num_facets, "ordered_pairs": model.num_pairs,
+            "build_median_ms": build["median"] * 1000, "build_peak_rss_mib": build["peak_mib"],
+            "fast": fast, "paper": paper, "paper_complete": complete, "ratio_paper_over_fast": ratio}
+
+
+def format_table(results):
+    lines = [f"{'model':8s} {'m':>6s} {'build ms':>9s} {'peak MiB':>9s} | {'method':6s} {'S_ij':>7s} {'tree':>7s} "
+             f"{'pose':>8s} {'rank':>7s} {'total med':>9s} {'p95':>8s} {'max':>8s} {'H med':>6s} {'recall':>6s}"]
+    for r in results:
+        for method in ("fast", "paper"):
+            s = r[method]
+            lines.append(
+                f"{r['model']:8s} {r['facets']:6d} {r['build_median_ms']:9.2f} {r['build_peak_rss_mib']:9.0f} | {method:6s} "
+                + " ".join(f"{s[k]['median_ms']:7.3f}" for k in ("pairs", "tree"))
+                + f" {s['pose']['median_ms']:8.3f} {s['rank']['median_ms']:7.3f} {s['total']['median_ms']:9.3f} "
+                f"{s['total']['p95_ms']:8.2f} {s['total']['max_ms']:8.2f} {s['hypotheses']['median']:6.0f} {s['recall']:6.2f}"
+                + ("" if method == "fast" or r["paper_complete"] else f"  (stopped after {s['runs']} runs: over the cap)"))
+        lines.append(f"{'':8s} paper/fast median ratio: {r['ratio_paper_over_fast']:.1f}x")
+    return "\n".join(lines)
+
+
+def run_bench(args):
+    names = args.models or ["banana", "rock1k"]
+    unknown = [n for n in names if n not in objects.names()]
+    if unknown:
+        from contactpose.errors import ContactPoseError
+
+        raise ContactPoseError(f"unknown model {unknown[0]!r}; choose from {objects.names()}")
+    start = time.perf_counter()
+    results = [bench_model(n, args.runs, args.seed, args.paper_cap) for n in names]
+    report = {"machine": machine_description(), "runs": args.runs, "seed": args.seed,
+              "noise": {"position": POSITION_NOISE, "normal_deg": NORMAL_NOISE_DEG}, "models": results,
+              "seconds": time.perf_counter() - start}
+    print(f"machine: {report['machine']}")
+    print(format_table(results))
+    os.makedirs(args.out, exist_ok=True)
+    path = args.json or os.path.join(args.out, "bench.json")
+    with open(path, "w") as fh:
+        json.dump(report, fh, indent=1)
+    print(f"written: {path}")
+    return 0

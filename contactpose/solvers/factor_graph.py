@@ -1,0 +1,537 @@
+"""Factor-graph refinement of ranked hypotheses in GTSAM: contact factors, vision prior,
+robust kernels, marginal covariances and hypothesis probabilities.
+
+One ``Pose3`` variable per hypothesis: T_world_object. Its graph holds
+
+* one batched contact factor (a ``gtsam.CustomFactor`` over all n contacts) whose error
+  is exactly the residuals of :mod:`contactpose.residuals`, whitened by the sensor noise:
+  ``[r_n / σ_n (3n, contact-major), r_o / σ_x (n), r_l / σ_x (n, point_to_facet only)]``;
+* optionally a ``PriorFactorPose3`` from a :class:`~contactpose.localize.PosePrior`.
+
+Jacobians are analytic, in GTSAM's tangent order and convention: rotation first, right
+perturbation ``T ⊕ ξ = T · Exp(ξ)``, ``ξ = (ω, v)``, so to first order ``R' = R (I + [ω]×)``
+and ``t' = t + R v``. With ``p = Rᵀ(x̃ - t)`` this gives ``dp/dξ = [[p]×, -I]`` and
+
+* ``∂r_n/∂ξ = [-R [n_k]×, 0]``,
+* ``∂r_o/∂ξ = [(n_k × p)ᵀ, -n_kᵀ]``,
+* ``∂r_l/∂ξ = [(u × p)ᵀ, -uᵀ]`` with u the unit in-plane part of ``p - closest(p, V_k)``;
+  the row is zero when the contact lies over its triangle (r_l = 0, the residual is flat).
+
+Noise: the factor uses a ``Unit`` noise model and whitens inside (divides by σ), because
+the robust kernel must act on whitened errors.
+
+Robust kernels act per contact, on the norm s_i of the contact's whitened block (its
+4 or 5 rows), not on the whole factor: GTSAM's ``noiseModel.Robust`` reweights a factor's
+error as one block, which on a batched factor would down-weight all contacts together.
+The factor returns ``ẽ_i = sqrt(2 ρ(s_i)) e_i / s_i``, so that ``½|ẽ_i|² = ρ(s_i)`` exactly
+(the "square-rooted" robust residual) with GTSAM's ``mEstimator`` losses
+``ρ_Huber(s) = s²/2 (s ≤ k), k s - k²/2`` and ``ρ_Cauchy(s) = k²/2 log(1 + s²/k²)``.
+The optimum is the robust M-estimate ``argmin Σ_i ρ(s_i)``; one factor per contact with
+``noiseModel.Robust`` (block reweighting) has the same cost and optimum (a test).
+
+Kernel width: an inlier block holds about 3 informative whitened components (2 normal,
+1 offset; r_l is 0 for a contact inside its triangle), so s_i² ~ χ²(3). k = sqrt(χ²₃(0.95))
+= 2.80 leaves 95 % of inlier contacts in the quadratic zone (Huber: no efficiency loss
+there), and a displaced contact (tens of σ) keeps only a bounded (Huber) or vanishing
+(Cauchy) influence. The scalar textbook value 1.345 would down-weight about half of the
+inlier contacts, whose block norm has median 1.54.
+
+Hypothesis scores (:func:`refine_hypotheses`):
+
+* ``chi2 = 2 · graph.error(T*)``: the whitened χ² of the contacts (robust: Σ 2ρ(s_i)) plus
+  the prior's squared Mahalanobis distance;
+* ``covariance``: ``gtsam.Marginals`` at T*, 6×6, rotation first, in the tangent space
+  at T* (right perturbation);
+* ``log_evidence``: Laplace approximation of log ∫ p(z | T, h) p(T) dT,
+  ``-½ chi2 + ½ log det(2π Σ) - ½ log det(2π Σ_prior)`` (the last term only with a prior;
+  without one the flat prior is a constant). Terms equal for all hypotheses of one call
+  (the Gaussian normalisation of the n contacts) are dropped, so only differences matter;
+* ``probability``: softmax of log_evidence over the refined hypotheses.
+
+A hypothesis whose normals leave pose directions free (and no prior) has no Gaussian
+posterior: its covariance and log-evidence are NaN and it gets probability 0.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from functools import partial
+from typing import NamedTuple
+
+import gtsam
+import numpy as np
+from numba import njit
+from scipy.spatial.transform import Rotation
+
+from contactpose import residuals as res
+from contactpose.errors import ContactPoseError
+from contactpose.geometry import closest_point_triangle
+from contactpose.solvers.closed_form import wahba
+
+log = logging.getLogger(__name__)
+
+ROBUST_KERNELS = ("huber", "cauchy", "none")
+#: Kernel width on the norm of a contact's whitened block: sqrt(χ²₃(0.95)).
+HUBER_K = 2.7954834829151074
+CAUCHY_K = 2.7954834829151074
+#: Refine this many hypotheses by default (0: all).
+DEFAULT_K = 20
+#: "ambiguous" when the probability of hypotheses that are a distinct pose from the best
+#: (ADD-S above SAME_CLASS_ADDS_FRAC of the diameter) exceeds this.
+AMBIGUOUS_PROBABILITY = 0.05
+#: A lateral residual below this fraction of σ_x counts as 0 (rounding of the face projection).
+LATERAL_ZERO_REL = 1e-9
+#: The one variable of every graph.
+POSE_KEY = 0
+#: Columns of the packed per-contact data: normal (3), offset, triangle (9), point (3), finger normal (3).
+_DATA_COLS = 19
+_KERNEL_CODE = {"none": 0, "huber": 1, "cauchy": 2}
+
+
+# ------------------------------------------------------------------ kernels ---
+
+@njit(cache=True)
+def _robust_scale(s, kernel, k):
+    """(f, g') for the square-rooted robust residual ẽ = f e, g(s) = f s = sqrt(2ρ(s))."""
+    if kernel == 1:  # Huber
+        if s <= k:
+            return 1.0, 1.0
+        g = np.sqrt(2.0 * k * s - k * k)
+        return g / s, k / g
+    # Cauchy: ρ = k²/2 log(1 + s²/k²), ρ' = s / (1 + s²/k²)
+    q = s * s / (k * k)
+    g = k * np.sqrt(np.log1p(q))
+    return g / s, s / (1.0 + q) / g
+
+
+@njit(cache=True)
+def _contact_rows(M, data, params, lateral, kernel, want_j, e, J):
+    """Whitened (robust) contact residuals and their Jacobian w.r.t. the Pose3.
+
+    M : (4, 4) pose; data : (n, 19) packed contacts; params : (inv σ_n, inv σ_x, k, r_l zero);
+    e : (m,) out; J : (m, 6) out (written when want_j). Rows: 3n normal (contact-major),
+    n offset, then n lateral when ``lateral``.
+    """
+    n = data.shape[0]
+    inv_sn, inv_sx, k, tiny = params[0], params[1], params[2], params[3]
+    R = M[:3, :3]
+    t = M[:3, 3]
+    for i in range(n):
+        nk = data[i, 0:3]
+        x = data[i, 13:16]
+        f = data[i, 16:19]
+        # r_n = R n_k + ñ_i; ∂/∂ω = -R [n_k]×
+        for a in range(3):
+            e[3 * i + a] = (R[a, 0] * nk[0] + R[a, 1] * nk[1] + R[a, 2] * nk[2] + f[a]) * inv_sn
+        if want_j:
+            for a in range(3):
+                # row a of -R [n_k]×
+                J[3 * i + a, 0] = -(R[a, 1] * nk[2] - R[a, 2] * nk[1]) * inv_sn
+                J[3 * i + a, 1] = -(R[a, 2] * nk[0] - R[a, 0] * nk[2]) * inv_sn
+                J[3 * i + a, 2] = -(R[a, 0] * nk[1] - R[a, 1] * nk[0]) * inv_sn
+                J[3 * i + a, 3] = 0.0
+                J[3 * i + a, 4] = 0.0
+                J[3 * i + a, 5] = 0.0
+        # p = Rᵀ (x̃ - t)
+        d0, d1, d2 = x[0] - t[0], x[1] - t[1], x[2] - t[2]
+        p0 = R[0, 0] * d0 + R[1, 0] * d1 + R[2, 0] * d2
+        p1 = R[0, 1] * d0 + R[1, 1] * d1 + R[2, 1] * d2
+        p2 = R[0, 2] * d0 + R[1, 2] * d1 + R[2, 2] * d2
+        # r_o = n_kᵀ p + d_k; ∂/∂ξ = [(n_k × p)ᵀ, -n_kᵀ]
+        ro = nk[0] * p0 + nk[1] * p1 + nk[2] * p2 + data[i, 3]
+        row = 3 * n + i
+        e[row] = ro * inv_sx
+        if want_j:
+            J[row, 0] = (nk[1] * p2 - nk[2] * p1) * inv_sx
+            J[row, 1] = (nk[2] * p0 - nk[0] * p2) * inv_sx
+            J[row, 2] = (nk[0] * p1 - nk[1] * p0) * inv_sx
+            J[row, 3] = -nk[0] * inv_sx
+            J[row, 4] = -nk[1] * inv_sx
+            J[row, 5] = -nk[2] * inv_sx
+        if lateral:
+            # r_l = |in-plane part of p - closest(p)|; ∂/∂ξ = [(u × p)ᵀ, -uᵀ], u its direction
+            p = np.array((p0, p1, p2))
+            c = closest_point_triangle(p, data[i, 4:7], data[i, 7:10], data[i, 10:13])
+            w0, w1, w2 = p0 - c[0], p1 - c[1], p2 - c[2]
+            h = nk[0] * w0 + nk[1] * w1 + nk[2] * w2
+            w0, w1, w2 = w0 - h * nk[0], w1 - h * nk[1], w2 - h * nk[2]
+            rl = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+            row = 4 * n + i
+            if rl <= tiny:
+                rl = 0.0
+            e[row] = rl * inv_sx
+            if want_j:
+                for c6 in range(6):
+                    J[row, c6] = 0.0
+                if rl > 0.0:
+                    u0, u1, u2 = w0 / rl, w1 / rl, w2 / rl
+                    J[row, 0] = (u1 * p2 - u2 * p1) * inv_sx
+                    J[row, 1] = (u2 * p0 - u0 * p2) * inv_sx
+                    J[row, 2] = (u0 * p1 - u1 * p0) * inv_sx
+                    J[row, 3] = -u0 * inv_sx
+                    J[row, 4] = -u1 * inv_sx
+                    J[row, 5] = -u2 * inv_sx
+    if kernel == 0:
+        return
+    # per-contact robust kernel: ẽ = f e, ∂ẽ = f ∂e + (g' - f) û ûᵀ ∂e
+    rows = np.empty(5, np.int64)
+    nrow = 5 if lateral else 4
+    for i in range(n):
+        rows[0], rows[1], rows[2], rows[3] = 3 * i, 3 * i + 1, 3 * i + 2, 3 * n + i
+        rows[4] = 4 * n + i
+        s2 = 0.0
+        for a in range(nrow):
+            s2 += e[rows[a]] ** 2
+        s = np.sqrt(s2)
+        if s == 0.0:
+            continue
+        fs, gp = _robust_scale(s, kernel, k)
+        if want_j and (fs != 1.0 or gp != 1.0):
+            for c6 in range(6):
+                proj = 0.0
+                for a in range(nrow):
+                    proj += e[rows[a]] * J[rows[a], c6]
+                proj /= s2  # (ûᵀ ∂e) / s
+                for a in range(nrow):
+                    J[rows[a], c6] = fs * J[rows[a], c6] + (gp - fs) * e[rows[a]] * proj
+        for a in range(nrow):
+            e[rows[a]] *= fs
+
+
+def pack_contacts(model, contacts, facets):
+    """Per-contact factor data of one hypothesis.
+
+    model : ObjectModel; contacts : Contacts; facets : (n,) int  ->  (n, 19) float64
+    """
+    facets = np.asarray(facets)
+    return np.concatenate([
+        model.planes.normals[facets], model.planes.offsets[facets, None],
+        model.triangles[facets].reshape(-1, 9), contacts.points, contacts.finger_normals,
+    ], axis=1)
+
+
+def kernel_params(tolerance, robust):
+    """(4,) float64 kernel parameters from a Tolerance and a robust kernel name."""
+    k = {"huber": HUBER_K, "cauchy": CAUCHY_K, "none": 0.0}[robust]
+    return np.array([1.0 / tolerance.normal_noise, 1.0 / tolerance.position_noise, k,
+                     LATERAL_ZERO_REL * tolerance.position_noise])
+
+
+def factor_dim(n, point_to_facet):
+    """Rows of the batched contact factor of n contacts."""
+    return n * (5 if point_to_facet else 4)
+
+
+def contact_residuals(T, data, params, *, point_to_facet=True, robust="none", jacobian=True):
+    """The batched factor's error and Jacobian at a pose, outside GTSAM.
+
+    T : (4, 4); data : (n, 19) from :func:`pack_contacts`; params : from :func:`kernel_params`.
+    Returns e (m,) and J (m, 6) (None when not ``jacobian``), m = :func:`factor_dim`.
+    """
+    m = factor_dim(len(data), point_to_facet)
+    e = np.empty(m)
+    J = np.empty((m, 6)) if jacobian else np.empty((0, 6))
+    _contact_rows(np.ascontiguousarray(T, dtype=np.float64), data, params, point_to_facet,
+                  _KERNEL_CODE[robust], jacobian, e, J)
+    return e, (J if jacobian else None)
+
+
+def contact_error(data, params, lateral, kernel, key, this, values, H):
+    """CustomFactor error function (bind everything before ``this`` with functools.partial).
+
+    data : (n, 19); params : (4,); lateral : bool; kernel : 0 none, 1 Huber, 2 Cauchy.
+    """
+    M = values.atPose3(key).matrix()
+    m = data.shape[0] * (5 if lateral else 4)
+    e = np.empty(m)
+    if H is None:
+        _contact_rows(M, data, params, lateral, kernel, False, e, _NO_JACOBIAN)
+        return e
+    J = np.empty((m, 6))
+    _contact_rows(M, data, params, lateral, kernel, True, e, J)
+    H[0] = J
+    return e
+
+
+_NO_JACOBIAN = np.empty((0, 6))
+
+
+def contact_factor(data, params, *, point_to_facet=True, robust="huber", key=POSE_KEY):
+    """The batched contact factor of one hypothesis: a gtsam.CustomFactor on ``key``.
+
+    data : (n, 19) from :func:`pack_contacts`; params : from :func:`kernel_params`.
+    """
+    noise = gtsam.noiseModel.Unit.Create(factor_dim(len(data), point_to_facet))
+    fn = partial(contact_error, data, params, bool(point_to_facet), _KERNEL_CODE[robust], key)
+    return gtsam.CustomFactor(noise, [key], fn)
+
+
+def prior_factor(prior, key=POSE_KEY):
+    """PriorFactorPose3 of a PosePrior, Gaussian with its (6, 6) covariance (rotation first)."""
+    noise = gtsam.noiseModel.Gaussian.Covariance(prior.covariance_matrix())
+    return gtsam.PriorFactorPose3(key, gtsam.Pose3(prior.pose), noise)
+
+
+def lm_params(max_iterations=50):
+    """LM settings: the closed form starts near the optimum, so start with little damping
+    and stop on a relative decrease of 1e-10 (a few iterations)."""
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(max_iterations)
+    params.setlambdaInitial(1e-6)
+    params.setRelativeErrorTol(1e-10)
+    params.setAbsoluteErrorTol(1e-12)
+    return params
+
+
+# ----------------------------------------------------- prior-aware start ---
+
+def prior_closed_form(obj_normals, obj_offsets, points, finger_normals, tolerance, prior):
+    """Closed-form poses of H hypotheses with the vision prior as extra observations.
+
+    Rotation: Wahba on the whitened normals plus the prior's axes, Σ_i |R n_k + ñ_i|²/σ_n²
+    + |R - R_p|_F² / (2 σ_r²) (σ_r² the mean rotation variance of the prior). Translation:
+    exact least squares of Σ_i r_o²/σ_x² + (t - t_p)ᵀ Σ_t⁻¹ (t - t_p) given R, with the prior's
+    translation covariance rotated into the world. Always a unique pose (the prior fills any
+    direction the normals leave free), so it serves as LM start and for screening.
+
+    obj_normals : (H, n, 3), obj_offsets : (H, n), points, finger_normals : (n, 3)
+    -> R (H, 3, 3), t (H, 3)
+    """
+    h, n, _ = obj_normals.shape
+    cov = prior.covariance_matrix()
+    Rp, tp = prior.pose[:3, :3], prior.pose[:3, 3]
+    w_r = 1.0 / np.sqrt(2.0 * np.trace(cov[:3, :3]) / 3.0)
+    w_n = 1.0 / tolerance.normal_noise
+    obj = np.concatenate([obj_normals * w_n, np.broadcast_to(np.eye(3) * w_r, (h, 3, 3))], axis=1)
+    world = np.concatenate([-finger_normals * w_n, Rp.T * w_r], axis=0)  # rows R_p e_j
+    R = wahba(obj, world)
+    A = np.einsum("hij,hnj->hni", R, obj_normals)  # rows (R n_k)ᵀ
+    b = np.einsum("hni,ni->hn", A, points) + obj_offsets
+    info_t = np.linalg.inv(Rp @ cov[3:, 3:] @ Rp.T)
+    lhs = np.einsum("hni,hnj->hij", A, A) / tolerance.position_noise**2 + info_t
+    rhs = np.einsum("hni,hn->hi", A, b) / tolerance.position_noise**2 + info_t @ tp
+    return R, np.linalg.solve(lhs, rhs[..., None])[..., 0]
+
+
+def prior_mahalanobis2(R, t, prior):
+    """Squared Mahalanobis distance of poses from the prior, ξ = (Log(R_pᵀR), R_pᵀ(t - t_p)).
+
+    R : (H, 3, 3), t : (H, 3)  ->  (H,). The translation part is the first-order Pose3 log.
+    """
+    Rp, tp = prior.pose[:3, :3], prior.pose[:3, 3]
+    xi = np.concatenate([Rotation.from_matrix(np.einsum("ji,hjk->hik", Rp, R)).as_rotvec(),
+                         (t - tp) @ Rp], axis=1)
+    return np.einsum("hi,ij,hj->h", xi, np.linalg.inv(prior.covariance_matrix()), xi)
+
+
+# ------------------------------------------------------------- refinement ---
+
+@dataclass
+class Refinement:
+    """Refined hypotheses, most probable first.
+
+    index : (K,) int rows of the input HypothesisArrays; facets : (K, n) int;
+    poses : (K, 4, 4) refined T_world_object; start : (K, 4, 4) LM initial values;
+    chi2 : (K,) 2·graph.error at the optimum (robust contact cost + prior term);
+    contact_chi2 : (K,) plain whitened χ² of the contacts (no kernel, no prior);
+    covariance : (K, 6, 6) marginal covariance (rotation first), NaN when undetermined;
+    log_evidence : (K,) Laplace log-evidence (NaN when undetermined); probability : (K,);
+    iterations : (K,) LM iterations; determined : (K,) bool; seconds : (K,) refinement time.
+    """
+
+    index: np.ndarray
+    facets: np.ndarray
+    poses: np.ndarray
+    start: np.ndarray
+    chi2: np.ndarray
+    contact_chi2: np.ndarray
+    covariance: np.ndarray
+    log_evidence: np.ndarray
+    probability: np.ndarray
+    iterations: np.ndarray
+    determined: np.ndarray
+    seconds: np.ndarray
+    robust: str = "huber"
+    has_prior: bool = False
+
+    def __len__(self):
+        return len(self.index)
+
+
+def laplace_log_evidence(chi2, covariance, prior_covariance=None):
+    """-½ chi2 + ½ log det(2π Σ) [- ½ log det(2π Σ_prior)].  chi2 : (K,), covariance : (K, 6, 6)."""
+    sign, logdet = np.linalg.slogdet(2.0 * np.pi * covariance)
+    out = -0.5 * chi2 + 0.5 * np.where(sign > 0, logdet, np.nan)
+    if prior_covariance is not None:
+        out -= 0.5 * np.linalg.slogdet(2.0 * np.pi * prior_covariance)[1]
+    return out
+
+
+def normalise(log_evidence):
+    """Softmax over the finite entries; NaN entries get probability 0. (K,) -> (K,)"""
+    ok = np.isfinite(log_evidence)
+    p = np.zeros(len(log_evidence))
+    if ok.any():
+        z = log_evidence[ok] - log_evidence[ok].max()
+        p[ok] = np.exp(z) / np.exp(z).sum()
+    return p
+
+
+def refine_hypotheses(model, contacts, arrays, tolerance, *, prior=None, robust="huber", k=DEFAULT_K,
+                      point_to_facet=True, params=None):
+    """Refine the best k hypotheses in a GTSAM factor graph and score them.
+
+    model : ObjectModel; contacts : Contacts; arrays : HypothesisArrays ranked by the closed
+    form (rows with n facets each); tolerance : Tolerance (σ_x = position_noise, σ_n =
+    normal_noise); prior : PosePrior or None; robust : "huber" | "cauchy" | "none"; k : how
+    many to refine (0: all); point_to_facet : add the lateral residual; params : optional
+    gtsam.LevenbergMarquardtParams (default :func:`lm_params`).
+
+    Which k: without a prior the first k rows of ``arrays`` (closed-form ranking), started
+    from their closed-form poses. With a prior every row is re-scored by its contact χ² plus
+    the prior's Mahalanobis distance at :func:`prior_closed_form`, the best k are refined
+    from those poses (a closed-form ranking blind to the prior can push the true hypothesis
+    of a near-symmetric object past k). Returns a :class:`Refinement`, most probable first.
+    """
+    _check(model, contacts, arrays, tolerance, prior, robust, k)
+    facets_all = np.asarray(arrays.facets)
+    if len(facets_all) == 0:
+        return _empty(contacts.n, robust, prior)
+    idx, starts = _select(model, contacts, arrays, tolerance, prior, k, point_to_facet)
+    params = params or lm_params()
+    pk = kernel_params(tolerance, robust)
+    prior_f = None if prior is None else prior_factor(prior)
+    out = [_refine_one(pack_contacts(model, contacts, facets_all[i]), pk, T0, prior_f, params,
+                       point_to_facet, robust) for i, T0 in zip(idx, starts)]
+    poses, chi2, cov, iters, secs = (np.array(v) for v in zip(*out))
+    determined = np.isfinite(cov).all(axis=(1, 2))
+    prior_cov = None if prior is None else prior.covariance_matrix()
+    log_ev = laplace_log_evidence(chi2, np.where(determined[:, None, None], cov, np.eye(6)), prior_cov)
+    log_ev[~determined] = np.nan
+    prob = normalise(log_ev)
+    contact_chi2 = _contact_chi2(model, contacts, facets_all[idx], poses, tolerance, point_to_facet)
+    order = np.lexsort((np.arange(len(idx)), -np.nan_to_num(log_ev, nan=-np.inf)))
+    return Refinement(idx[order], facets_all[idx][order], poses[order], starts[order], chi2[order],
+                      contact_chi2[order], cov[order], log_ev[order], prob[order], iters[order],
+                      determined[order], secs[order], robust, prior is not None)
+
+
+def _refine_one(data, pk, T0, prior_f, params, point_to_facet, robust):
+    """LM on one hypothesis' graph. -> pose (4, 4), chi2, covariance (6, 6), iterations, seconds"""
+    start = time.perf_counter()
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(contact_factor(data, pk, point_to_facet=point_to_facet, robust=robust))
+    if prior_f is not None:
+        graph.add(prior_f)
+    values = gtsam.Values()
+    values.insert(POSE_KEY, gtsam.Pose3(T0))
+    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+    result = optimizer.optimize()
+    chi2 = 2.0 * graph.error(result)
+    try:
+        cov = gtsam.Marginals(graph, result).marginalCovariance(POSE_KEY)
+    except RuntimeError:  # indeterminant system: a pose family, not a pose
+        cov = np.full((6, 6), np.nan)
+    return result.atPose3(POSE_KEY).matrix(), chi2, cov, optimizer.iterations(), time.perf_counter() - start
+
+
+def _select(model, contacts, arrays, tolerance, prior, k, point_to_facet):
+    """Rows to refine and their LM start poses: (K,) int, (K, 4, 4)."""
+    h = len(arrays.facets)
+    k = h if k == 0 else min(k, h)
+    if prior is None:
+        idx = np.arange(k)
+        return idx, np.asarray(arrays.poses)[idx]
+    normals = model.planes.normals[arrays.facets]
+    offsets = model.planes.offsets[arrays.facets]
+    R, t = prior_closed_form(normals, offsets, contacts.points, contacts.finger_normals, tolerance, prior)
+    T = np.zeros((h, 4, 4))
+    T[:, :3, :3], T[:, :3, 3], T[:, 3, 3] = R, t, 1.0
+    score = _contact_chi2(model, contacts, arrays.facets, T, tolerance, point_to_facet)
+    score = score + prior_mahalanobis2(R, t, prior)
+    idx = np.argsort(score, kind="stable")[:k]
+    return idx, T[idx]
+
+
+def _contact_chi2(model, contacts, facets, poses, tolerance, point_to_facet):
+    """Whitened χ² of residuals.py (lateral term only with point_to_facet). -> (H,)"""
+    R, t = poses[:, :3, :3], poses[:, :3, 3]
+    normals = model.planes.normals[facets]
+    r_n = res.normal_residuals(R, normals, contacts.finger_normals)
+    p_obj = res.to_object_frame(R, t, contacts.points)
+    r_o = res.offset_residuals(p_obj, normals, model.planes.offsets[facets])
+    r_l = (res.lateral_residuals(p_obj, model.triangles[facets], r_o) if point_to_facet
+           else np.zeros_like(r_o))
+    return res.whitened_cost(r_n, r_o, r_l, tolerance.normal_noise, tolerance.position_noise)
+
+
+def _empty(n, robust, prior):
+    z = np.zeros(0)
+    return Refinement(np.zeros(0, int), np.zeros((0, n), int), np.zeros((0, 4, 4)), np.zeros((0, 4, 4)),
+                      z, z, np.zeros((0, 6, 6)), z, z, np.zeros(0, int), np.zeros(0, bool), z,
+                      robust, prior is not None)
+
+
+def _check(model, contacts, arrays, tolerance, prior, robust, k):
+    from contactpose.contacts import Contacts
+    from contactpose.localize import HypothesisArrays, PosePrior
+
+    if robust not in ROBUST_KERNELS:
+        raise ContactPoseError(f"robust must be one of {ROBUST_KERNELS}, got {robust!r}")
+    if not (isinstance(k, (int, np.integer)) and not isinstance(k, bool) and k >= 0):
+        raise ContactPoseError(f"k must be a non-negative integer (0: all), got {k!r}")
+    if not isinstance(contacts, Contacts):
+        raise ContactPoseError(f"contacts must be a contactpose.Contacts, got {type(contacts).__name__}")
+    if not isinstance(arrays, HypothesisArrays):
+        raise ContactPoseError(f"arrays must be a HypothesisArrays, got {type(arrays).__name__}")
+    if prior is not None and not isinstance(prior, PosePrior):
+        raise ContactPoseError(f"prior must be a contactpose.PosePrior or None, got {type(prior).__name__}")
+    facets = np.asarray(arrays.facets)
+    if facets.ndim != 2 or (len(facets) and facets.shape[1] != contacts.n):
+        raise ContactPoseError(f"arrays.facets must have shape (H, {contacts.n}), got {facets.shape}")
+    if len(facets) and (facets.min() < 0 or facets.max() >= model.num_facets):
+        raise ContactPoseError(f"arrays.facets must index the model's {model.num_facets} facets")
+
+
+# -------------------------------------------------------------- ambiguity ---
+
+class Ambiguity(NamedTuple):
+    """ambiguous : bool; distinct_probability : mass of hypotheses distinct from the best;
+    runner_up : position in the Refinement of the most probable distinct one, or None."""
+
+    ambiguous: bool
+    distinct_probability: float
+    runner_up: int | None
+
+
+def ambiguous(model, refinement, *, threshold=AMBIGUOUS_PROBABILITY):
+    """Whether the refined hypotheses leave a distinct pose class with real probability.
+
+    A hypothesis is distinct from the best when ADD-S(T_j, T_best) > SAME_CLASS_ADDS_FRAC ·
+    diameter (so symmetric twins of the best count with it). "ambiguous" when the summed
+    probability of distinct hypotheses exceeds ``threshold`` (default 0.05); with two
+    hypotheses this is "the second is a distinct pose with probability above 5 %".
+    Hypotheses are visited most probable first and the scan stops once the answer is
+    fixed, so few ADD-S evaluations are needed.
+    """
+    from contactpose.metrics import SAME_CLASS_ADDS_FRAC, adds
+
+    if not (0.0 <= threshold < 1.0):
+        raise ContactPoseError(f"threshold must be in [0, 1), got {threshold!r}")
+    p = refinement.probability
+    if len(p) < 2:
+        return Ambiguity(False, 0.0, None)
+    limit = SAME_CLASS_ADDS_FRAC * model.diameter
+    distinct, runner_up, remaining = 0.0, None, float(p[1:].sum())
+    for j in range(1, len(p)):
+        if distinct > threshold or distinct + remaining <= threshold:
+            break
+        remaining -= p[j]
+        if p[j] <= 0.0:
+            continue
+        if adds(refinement.poses[j], refinement.poses[0], model.surface_points, model.surface_tree) > limit:
+            distinct += float(p[j])
+            runner_up = j if runner_up is None else runner_up
+    return Ambiguity(distinct > threshold, distinct, runner_up)
