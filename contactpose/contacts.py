@@ -131,9 +131,11 @@ class Tolerance:
         return cls(k * position_noise + model_error, min(k * sigma_n, np.pi), float(position_noise), float(sigma_n))
 
     def direction(self, distance):
-        """σ_h for a finger pair Δ̃ apart: σ_Δ + (Δ̃ + σ_Δ)·σ_α (NOTES.md; a tilt of the
-        measured normal by the angle bound moves the other contact's height by at most
-        the true distance times that angle)."""
+        """σ_h for finger pairs Δ̃ apart (scalar or array): σ_Δ + (Δ̃ + σ_Δ)·σ_α.
+
+        A tilt of the measured normal by at most the angle bound moves the other
+        contact's height by at most the true distance times that angle (research/errata.md).
+        """
         return self.distance + (distance + self.distance) * self.angle
 
     def per_contact_bounds(self):

@@ -25,6 +25,9 @@ from numba import njit
 
 from contactpose.errors import ContactPoseError
 
+# Prefer OpenMP: probing an old TBB first prints a warning on every start.
+numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
+
 __all__ = [
     "SLIVER_REL",
     "point_triangle_dist2",

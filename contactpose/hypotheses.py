@@ -13,6 +13,7 @@ Two joins give the same set:
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 #: Membership tests use a dense bitmap up to this many facet pairs (bytes), else sorted keys.
@@ -70,15 +71,9 @@ def admissible_pairs(model, conditions, tolerance, bounds="exact", direction=Tru
     direction : also apply the direction constraint (the default method; not the paper's).
     Returns dict (i, j) -> PairSet.
     """
-    table = model.table
-    c = conditions
-    result = {}
-    for e, (i, j) in enumerate(c.pairs):
-        dist = float(c.distance[e])
-        h = (float(c.h_ij[e]), float(c.h_ji[e]), tolerance.direction(dist)) if direction else None
-        k, l = table.query_pairs(dist, float(c.angle[e]), tolerance.distance, tolerance.angle, bounds, h)
-        result[(i, j)] = PairSet(k, l, model.num_facets)
-    return result
+    first, second, cut = model.table.query_all(conditions, tolerance, bounds, direction)
+    return {pair: PairSet(first[cut[e]:cut[e + 1]], second[cut[e]:cut[e + 1]], model.num_facets)
+            for e, pair in enumerate(conditions.pairs)}
 
 
 def _pair(S, a, b):
@@ -107,10 +102,70 @@ def _expand(S, a, f, facets_a):
     return rows, targets[np.repeat(indptr[facets_a], counts) + within]
 
 
-def join_tuples(S, n):
+def triple_products(normals):
+    """det[a, b, c] of three unit vectors. normals : (..., 3, 3) rows a, b, c -> (...)"""
+    return np.linalg.det(normals)
+
+
+def triple_tolerance(angle_bound):
+    """Bound on |det[m_a, m_b, m_c] - det[n_a, n_b, n_c]| when each unit vector m is n tilted
+    by at most ``angle_bound``: det is multilinear, |m - n| <= δ = 2 sin(angle/2), so the
+    change is at most (1 + δ)³ - 1."""
+    delta = 2.0 * np.sin(min(angle_bound, np.pi) / 2.0)
+    return (1.0 + delta) ** 3 - 1.0
+
+
+class TripleTest:
+    """Handedness test for triples of fingers: pairwise angles cannot tell three normals
+    from their mirror image, the triple product can.
+
+    facet_normals : (m, 3); measured : (n, 3) measured object normals (-ñ);
+    angle_bound : per-contact tilt bound (radians).
+    """
+
+    def __init__(self, facet_normals, measured, angle_bound):
+        self.facet_normals = facet_normals
+        self.measured = measured
+        self.tol = triple_tolerance(angle_bound)
+
+    def keep(self, tuples, assigned):
+        """(r,) bool: tuples (r, c) whose every triple containing the last column passes.
+
+        assigned : the finger of each column.
+        """
+        last = len(assigned) - 1
+        cols = np.array([(a, b, last) for a in range(last) for b in range(a + 1, last)], dtype=np.int64)
+        if len(cols) == 0:
+            return np.ones(len(tuples), dtype=bool)
+        want = triple_products(self.measured[np.asarray(assigned)[cols]])
+        return _triples_within(self.facet_normals, tuples, cols, want, self.tol)
+
+
+@numba.njit(cache=True)
+def _det3(a, b, c):
+    return (a[0] * (b[1] * c[2] - b[2] * c[1]) - a[1] * (b[0] * c[2] - b[2] * c[0])
+            + a[2] * (b[0] * c[1] - b[1] * c[0]))
+
+
+@numba.njit(cache=True)
+def _triples_within(normals, tuples, cols, want, tol):
+    """Per row: all |det[n_a, n_b, n_c] - want| <= tol over the column triples ``cols``."""
+    keep = np.ones(len(tuples), dtype=np.bool_)
+    for r in range(len(tuples)):
+        for t in range(len(cols)):
+            got = _det3(normals[tuples[r, cols[t, 0]]], normals[tuples[r, cols[t, 1]]],
+                        normals[tuples[r, cols[t, 2]]])
+            if abs(got - want[t]) > tol:
+                keep[r] = False
+                break
+    return keep
+
+
+def join_tuples(S, n, triple=None):
     """All n-tuples admissible for every finger pair (the tree T), vectorized per level.
 
-    S : dict (i, j) -> PairSet for i < j. Returns (H, n) int64 in finger order.
+    S : dict (i, j) -> PairSet for i < j; triple : optional TripleTest applied to every
+    triple of fingers as soon as it is placed. Returns (H, n) int64 in finger order.
     """
     start = min(S, key=lambda key: len(S[key]))
     assigned = list(start)
@@ -126,6 +181,8 @@ def join_tuples(S, n):
                 keep &= _contains(S, b, f, tuples[rows, assigned.index(b)], new)
         tuples = np.column_stack([tuples[rows[keep]], new[keep]])
         assigned.append(f)
+        if triple is not None:
+            tuples = tuples[triple.keep(tuples, assigned)]
     if len(assigned) < n:
         return np.empty((0, n), dtype=np.int64)
     return tuples[:, np.argsort(assigned)]

@@ -18,7 +18,7 @@ import numpy as np
 from contactpose import residuals as res
 from contactpose.contacts import Contacts, Tolerance, pair_conditions
 from contactpose.errors import ContactPoseError, PriorError
-from contactpose.hypotheses import admissible_pairs, join_tuples, join_tuples_paper
+from contactpose.hypotheses import TripleTest, admissible_pairs, join_tuples, join_tuples_paper
 from contactpose.metrics import SAME_CLASS_ADDS_FRAC, adds, displacement_bound
 from contactpose.solvers.closed_form import PoseFit, fit_poses
 from contactpose.solvers.lm import fit_lm_all
@@ -237,8 +237,11 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
     bounds = "exact" if method == "fast" else "paper"
     S = admissible_pairs(model, pair_conditions(contacts), tolerance, bounds, direction=method == "fast")
     clock.append(time.perf_counter())
-    join = join_tuples if method == "fast" else join_tuples_paper
-    facets = join(S, contacts.n)
+    if method == "fast":
+        triple = TripleTest(model.planes.normals, contacts.object_normals, tolerance.per_contact_bounds()[1])
+        facets = join_tuples(S, contacts.n, triple)
+    else:
+        facets = join_tuples_paper(S, contacts.n)
     clock.append(time.perf_counter())
     fit, cost_paper = _fit(model, contacts, facets, tolerance, prior, solver, method)
     clock.append(time.perf_counter())

@@ -425,43 +425,62 @@ def crop_mask(points: np.ndarray, crop) -> np.ndarray:
 
 
 def estimate_normals(pcd: o3d.geometry.PointCloud, radius: float, opt: ScanOptions) -> o3d.geometry.PointCloud:
-    """Estimate unit normals and orient them outward.
+    """Unit normals, oriented outward.
 
-    Orientation, first that applies: the cloud's own normals (``normals`` mode
-    "auto": each estimated normal is flipped to agree with the given one, so a
-    scanner's sensor-facing normals fix the side while the geometry fixes the
-    direction); a known camera location; else consistent tangent-plane
-    propagation, then one global flip so normals point away from the centroid
-    on average.
+    Mode "given" keeps the cloud's own normals. Otherwise normals are estimated
+    from the neighbourhood (``radius``, ``normal_max_nn``) and oriented by the
+    first that applies: ``camera_location``; the cloud's own normals in mode
+    "auto" (each estimate is flipped to the side of the given one, so a
+    scanner's sensor-facing normals fix the side and the geometry the
+    direction); else consistent tangent-plane propagation followed by one
+    global flip so that normals point away from the centroid on average.
     """
-    given = np.asarray(pcd.normals).copy() if pcd.has_normals() else None
-    if given is not None:
-        given_ok = np.linalg.norm(given, axis=1) > 0.5
+    given = _given_normals(pcd)
     if opt.normals == "given":
-        if given is None or not given_ok.all():
-            have = 0 if given is None else int(given_ok.sum())
-            raise ScanError(f"normals='given' but the cloud has {have} usable normals of "
-                            f"{len(pcd.points)} points; expected one per point")
-        pcd.normalize_normals()
+        if given is None:
+            raise ScanError(f"normals='given' but fewer than half of the {len(pcd.points)} points "
+                            "have a usable normal; expected one normal per point")
+        pcd.normals = o3d.utility.Vector3dVector(given)
         return pcd
     pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=int(opt.normal_max_nn)))
-    est = np.asarray(pcd.normals)
-    if opt.normals == "auto" and given is not None and given_ok.mean() > 0.5:
-        # flip each estimated normal to the side of the given one
-        agree = np.einsum("ij,ij->i", est, given)
-        est[agree < 0] *= -1.0
-        pcd.normals = o3d.utility.Vector3dVector(est)
-        return pcd
     if opt.camera_location is not None:
         pcd.orient_normals_towards_camera_location(np.asarray(opt.camera_location, dtype=np.float64))
         return pcd
+    est = np.asarray(pcd.normals).copy()
+    if opt.normals == "auto" and given is not None:
+        # flip each estimated normal to the side of the given one
+        est[np.einsum("ij,ij->i", est, given) < 0] *= -1.0
+        pcd.normals = o3d.utility.Vector3dVector(est)
+        return pcd
     pcd.orient_normals_consistent_tangent_plane(int(opt.orient_k))
-    est = np.asarray(pcd.normals)
+    est = np.asarray(pcd.normals).copy()
     pts = np.asarray(pcd.points)
     # outward on average: normals point away from the centroid
     if np.einsum("ij,ij->", est, pts - pts.mean(axis=0)) < 0:
         pcd.normals = o3d.utility.Vector3dVector(-est)
     return pcd
+
+
+def _given_normals(pcd: o3d.geometry.PointCloud) -> np.ndarray | None:
+    """The cloud's unit normals (n, 3), or None when fewer than half are usable.
+
+    A normal is unusable when it is missing, non-finite, or near zero (voxel
+    averaging cancels opposite normals on thin parts); such a point takes the
+    normal of its nearest neighbour with a usable one.
+    """
+    if not pcd.has_normals():
+        return None
+    normals = np.asarray(pcd.normals).copy()
+    length = np.linalg.norm(normals, axis=1)
+    ok = np.isfinite(length) & (length > 0.5)
+    if ok.mean() < 0.5:
+        return None
+    normals[ok] /= length[ok, None]
+    if not ok.all():
+        pts = np.asarray(pcd.points)
+        _, nearest = cKDTree(pts[ok]).query(pts[~ok], k=1)
+        normals[~ok] = normals[ok][nearest]
+    return normals
 
 
 def reconstruct(pcd: o3d.geometry.PointCloud, opt: ScanOptions, voxel: float, spacing: float,
@@ -529,7 +548,12 @@ def orient_outward(tm: trimesh.Trimesh, points: np.ndarray, normals: np.ndarray)
     must agree, on average, with the normals of the nearest oriented cloud points.
     """
     if not tm.is_winding_consistent:
-        trimesh.repair.fix_winding(tm)
+        # Open3D propagates a consistent winding over each connected piece
+        o3m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(tm.vertices),
+                                        o3d.utility.Vector3iVector(tm.faces))
+        if not o3m.orient_triangles():
+            log.warning("mesh is not orientable; winding left partly inconsistent")
+        tm = trimesh.Trimesh(np.asarray(o3m.vertices), np.asarray(o3m.triangles), process=False)
     if tm.is_watertight:
         inward = tm.volume < 0
     else:

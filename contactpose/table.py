@@ -126,6 +126,20 @@ class PairTable:
         idx = self.query(distance, angle, sigma_distance, sigma_angle, bounds)
         return self.ordered_pairs(idx, direction)
 
+    def query_all(self, conditions, tolerance, bounds="exact", direction=True):
+        """Ordered admissible pairs of every finger pair in one kernel call.
+
+        conditions : PairConditions; tolerance : Tolerance. Returns first, second :
+        (s,) int64 concatenated over finger pairs, and bounds (P + 1,) int64 delimiting them.
+        """
+        c = conditions
+        sigma_h = tolerance.direction(c.distance)
+        f = self.features
+        return _query_all(self.offsets, np.asarray(self.bins), self.mins, self.widths, f.dmax, f.dmin(bounds),
+                          f.alpha, f.k, f.l, f.h_kl, f.h_lk, c.distance, c.angle, c.h_ij, c.h_ji, sigma_h,
+                          tolerance.distance, tolerance.angle, direction,
+                          tol.LENGTH_SLACK_REL, tol.ANGLE_SLACK)
+
     def ordered_pairs(self, indices, direction=None):
         """Expand unordered entries to ordered pairs (k, l) and (l, k). indices : (s,) int."""
         f = self.features
@@ -193,6 +207,30 @@ def _gather(offsets, bins, mins, widths, dmax, dmin, alpha, lo_d, hi_d, lo_a, hi
                     out[count] = e
                     count += 1
     return out[:count]
+
+
+@numba.njit(cache=True)
+def _query_all(offsets, bins, mins, widths, dmax, dmin, alpha, k, l, h_kl, h_lk, distance, angle,
+               h_ij, h_ji, sigma_h, sigma_d, sigma_a, use_direction, slack_rel, slack_angle):
+    """:meth:`PairTable.query_pairs` for every finger pair; results concatenated."""
+    parts_first = []
+    parts_second = []
+    bounds = np.zeros(len(distance) + 1, np.int64)
+    for e in range(len(distance)):
+        slack_d = slack_rel * max(distance[e], sigma_d)
+        idx = _gather(offsets, bins, mins, widths, dmax, dmin, alpha,
+                      distance[e] - sigma_d - slack_d, distance[e] + sigma_d + slack_d,
+                      angle[e] - sigma_a - slack_angle, angle[e] + sigma_a + slack_angle)
+        first, second = _expand_ordered(k, l, idx, h_kl, h_lk, use_direction, h_ij[e], h_ji[e], sigma_h[e])
+        parts_first.append(first)
+        parts_second.append(second)
+        bounds[e + 1] = bounds[e] + len(first)
+    out_first = np.empty(bounds[-1], np.int64)
+    out_second = np.empty(bounds[-1], np.int64)
+    for e in range(len(distance)):
+        out_first[bounds[e]:bounds[e + 1]] = parts_first[e]
+        out_second[bounds[e]:bounds[e + 1]] = parts_second[e]
+    return out_first, out_second, bounds
 
 
 @numba.njit(cache=True)

@@ -201,15 +201,18 @@ def _contact_rows(M, data, params, lateral, kernel, want_j, e, J):
 
 
 def pack_contacts(model, contacts, facets):
-    """Per-contact factor data of one hypothesis.
+    """Per-contact factor data: normal (3), offset, triangle (9), point (3), finger normal (3).
 
-    model : ObjectModel; contacts : Contacts; facets : (n,) int  ->  (n, 19) float64
+    model : ObjectModel; contacts : Contacts; facets : (..., n) int  ->  (..., n, 19) float64
     """
     facets = np.asarray(facets)
+    lead = facets.shape[:-1]
     return np.concatenate([
-        model.planes.normals[facets], model.planes.offsets[facets, None],
-        model.triangles[facets].reshape(-1, 9), contacts.points, contacts.finger_normals,
-    ], axis=1)
+        model.planes.normals[facets], model.planes.offsets[facets][..., None],
+        model.triangles[facets].reshape(facets.shape + (9,)),
+        np.broadcast_to(contacts.points, lead + contacts.points.shape),
+        np.broadcast_to(contacts.finger_normals, lead + contacts.points.shape),
+    ], axis=-1)
 
 
 def kernel_params(tolerance, robust):
@@ -274,14 +277,23 @@ def prior_factor(prior, key=POSE_KEY):
     return gtsam.PriorFactorPose3(key, gtsam.Pose3(prior.pose), noise)
 
 
-def lm_params(max_iterations=50):
-    """LM settings: the closed form starts near the optimum, so start with little damping
-    and stop on a relative decrease of 1e-10 (a few iterations)."""
+def lm_params(max_iterations=30, relative_tol=1e-5):
+    """LM settings for one 6-dof pose started near its optimum.
+
+    Diagonal (Marquardt) damping: the whitened Hessian's eigenvalues span ~1e3..1e8
+    (radians vs. metres over σ_x), so GTSAM's default λ·I barely shortens a step, and a
+    Gauss-Newton step that carries a contact across its triangle's edge (where r_l sets
+    in) made LM give up at λ_max on a third of the banana hypotheses; with λ·diag(JᵀJ) it
+    shortens the step and goes on. λ starts at 1e-5 (Gauss-Newton steps near the optimum).
+    Stops when ½χ² decreases by less than ``relative_tol`` (1e-5, GTSAM's default: a
+    change of 1e-5 in χ² units moves the pose by far less than its standard deviation).
+    """
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(max_iterations)
-    params.setlambdaInitial(1e-6)
-    params.setRelativeErrorTol(1e-10)
-    params.setAbsoluteErrorTol(1e-12)
+    params.setDiagonalDamping(True)
+    params.setlambdaInitial(1e-5)
+    params.setRelativeErrorTol(relative_tol)
+    params.setAbsoluteErrorTol(1e-6)
     return params
 
 
@@ -324,6 +336,30 @@ def prior_mahalanobis2(R, t, prior):
     xi = np.concatenate([Rotation.from_matrix(np.einsum("ji,hjk->hik", Rp, R)).as_rotvec(),
                          (t - tp) @ Rp], axis=1)
     return np.einsum("hi,ij,hj->h", xi, np.linalg.inv(prior.covariance_matrix()), xi)
+
+
+def closed_form_arrays(model, contacts, facets, tolerance):
+    """HypothesisArrays of given facet tuples, closed-form fitted and ranked like ``localize``
+    (method "fast"): for tuples found some other way (the true tuple, outlier handling).
+
+    facets : (H, n) int  ->  HypothesisArrays, best χ² first
+    """
+    from contactpose.localize import HypothesisArrays
+    from contactpose.solvers.closed_form import fit_poses
+
+    facets = np.asarray(facets, dtype=np.int64).reshape(-1, contacts.n)
+    normals = model.planes.normals[facets]
+    offsets = model.planes.offsets[facets]
+    fit = fit_poses(normals, offsets, contacts.points, contacts.finger_normals, cost="invariant",
+                    angle_tol=tolerance.angle, centroids=model.centroids[facets])
+    r_n = res.normal_residuals(fit.R, normals, contacts.finger_normals)
+    p_obj = res.to_object_frame(fit.R, fit.t, contacts.points)
+    r_o = res.offset_residuals(p_obj, normals, offsets)
+    r_l = res.lateral_residuals(p_obj, model.triangles[facets], r_o)
+    chi2 = res.whitened_cost(r_n, r_o, r_l, tolerance.normal_noise, tolerance.position_noise)
+    residual = np.concatenate([r_n, r_o[..., None], r_l[..., None]], axis=2)
+    arrays = HypothesisArrays(facets, fit.poses(), chi2, chi2, residual, fit)
+    return arrays.take(np.argsort(chi2, kind="stable"))
 
 
 # ------------------------------------------------------------- refinement ---
@@ -370,9 +406,10 @@ def laplace_log_evidence(chi2, covariance, prior_covariance=None):
 
 
 def normalise(log_evidence):
-    """Softmax over the finite entries; NaN entries get probability 0. (K,) -> (K,)"""
+    """Softmax over the finite entries; NaN entries get probability 0 (all NaN when no
+    entry is finite: a set of pose families has no probabilities). (K,) -> (K,)"""
     ok = np.isfinite(log_evidence)
-    p = np.zeros(len(log_evidence))
+    p = np.zeros(len(log_evidence)) if ok.any() else np.full(len(log_evidence), np.nan)
     if ok.any():
         z = log_evidence[ok] - log_evidence[ok].max()
         p[ok] = np.exp(z) / np.exp(z).sum()
@@ -401,10 +438,20 @@ def refine_hypotheses(model, contacts, arrays, tolerance, *, prior=None, robust=
         return _empty(contacts.n, robust, prior)
     idx, starts = _select(model, contacts, arrays, tolerance, prior, k, point_to_facet)
     params = params or lm_params()
-    pk = kernel_params(tolerance, robust)
-    prior_f = None if prior is None else prior_factor(prior)
-    out = [_refine_one(pack_contacts(model, contacts, facets_all[i]), pk, T0, prior_f, params,
-                       point_to_facet, robust) for i, T0 in zip(idx, starts)]
+    # One graph for all hypotheses: the contact factor reads its data from ``buffer``,
+    # which is overwritten per hypothesis (all have the same n, so the same factor shape).
+    packed = pack_contacts(model, contacts, facets_all[idx])
+    buffer = packed[0].copy()
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(contact_factor(buffer, kernel_params(tolerance, robust), point_to_facet=point_to_facet,
+                             robust=robust))
+    if prior is not None:
+        graph.add(prior_factor(prior))
+    out = []
+    for data, T0 in zip(packed, starts):
+        clock = time.perf_counter()
+        np.copyto(buffer, data)
+        out.append(_optimize(graph, T0, params) + (time.perf_counter() - clock,))
     poses, chi2, cov, iters, secs = (np.array(v) for v in zip(*out))
     determined = np.isfinite(cov).all(axis=(1, 2))
     prior_cov = None if prior is None else prior.covariance_matrix()
@@ -418,23 +465,17 @@ def refine_hypotheses(model, contacts, arrays, tolerance, *, prior=None, robust=
                       determined[order], secs[order], robust, prior is not None)
 
 
-def _refine_one(data, pk, T0, prior_f, params, point_to_facet, robust):
-    """LM on one hypothesis' graph. -> pose (4, 4), chi2, covariance (6, 6), iterations, seconds"""
-    start = time.perf_counter()
-    graph = gtsam.NonlinearFactorGraph()
-    graph.add(contact_factor(data, pk, point_to_facet=point_to_facet, robust=robust))
-    if prior_f is not None:
-        graph.add(prior_f)
+def _optimize(graph, T0, params):
+    """LM from T0 on a one-pose graph. -> pose (4, 4), chi2 = 2·error, covariance (6, 6), iterations"""
     values = gtsam.Values()
     values.insert(POSE_KEY, gtsam.Pose3(T0))
     optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
     result = optimizer.optimize()
-    chi2 = 2.0 * graph.error(result)
     try:
         cov = gtsam.Marginals(graph, result).marginalCovariance(POSE_KEY)
     except RuntimeError:  # indeterminant system: a pose family, not a pose
         cov = np.full((6, 6), np.nan)
-    return result.atPose3(POSE_KEY).matrix(), chi2, cov, optimizer.iterations(), time.perf_counter() - start
+    return result.atPose3(POSE_KEY).matrix(), 2.0 * optimizer.error(), cov, optimizer.iterations()
 
 
 def _select(model, contacts, arrays, tolerance, prior, k, point_to_facet):
