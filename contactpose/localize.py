@@ -278,7 +278,7 @@ def _fit(model, contacts, facets, tolerance, prior, solver, method):
     cost_kind = "invariant" if method == "fast" else "paper"
     t0 = None if prior is None else np.broadcast_to(prior.pose[:3, 3], (len(facets), 3))
     fit = fit_poses(normals, offsets, contacts.points, contacts.finger_normals, cost=cost_kind,
-                    angle_tol=tolerance.angle, t0=t0, centroids=model.centroids[facets])
+                    angle_tol=tolerance.normal_noise, t0=t0, centroids=model.centroids[facets])
     if solver == "closed-form":
         return fit, None
     start = np.eye(4) if prior is None else prior.pose
