@@ -18,7 +18,7 @@ from contactpose.errors import ContactPoseError
 log = logging.getLogger("contactpose")
 
 
-def _model_or_mesh(path, bins=None, bounds=None):
+def _model_or_mesh(path, bins=None, bounds=None, fix_normals=False, max_span=None):
     """Load a model .npz, or build one from a mesh file (or built-in object name)."""
     from contactpose import objects
     from contactpose.model import ObjectModel
@@ -27,12 +27,13 @@ def _model_or_mesh(path, bins=None, bounds=None):
         return ObjectModel.load(path, bins=bins, bounds=bounds)
     source = objects.load(path) if path in objects.names() and not os.path.exists(path) else path
     kwargs = {k: v for k, v in (("bins", bins), ("bounds", bounds)) if v is not None}
-    return ObjectModel.from_mesh(source, **kwargs)
+    return ObjectModel.from_mesh(source, fix_normals=fix_normals, max_span=max_span, **kwargs)
 
 
 def cmd_build_model(args):
     start = time.perf_counter()
-    model = _model_or_mesh(args.mesh, bins=args.bins, bounds=args.bounds)
+    model = _model_or_mesh(args.mesh, bins=args.bins, bounds=args.bounds, fix_normals=args.fix_normals,
+                           max_span=args.max_span)
     seconds = time.perf_counter() - start
     out = args.output or os.path.splitext(os.path.basename(args.mesh))[0] + ".npz"
     model.save(out)
@@ -49,7 +50,7 @@ def cmd_localize(args):
     from contactpose import io
     from contactpose.localize import localize
 
-    model = _model_or_mesh(args.model)
+    model = _model_or_mesh(args.model, fix_normals=args.fix_normals)
     contacts = io.read_contacts(args.contacts)
     prior = io.read_prior(args.prior) if args.prior else None
     result = localize(model, contacts, position_noise=args.position_noise,
@@ -94,6 +95,8 @@ def build_parser():
     p.add_argument("-o", "--output", help="output .npz (default: MESH name with .npz)")
     p.add_argument("--bins", nargs=3, type=int, metavar="P", help="bins p_dmax p_dmin p_alpha")
     p.add_argument("--bounds", choices=("exact", "paper"), default="exact")
+    p.add_argument("--fix-normals", action="store_true", help="re-wind faces consistently outward (trimesh repair)")
+    p.add_argument("--max-span", type=float, help="hand span L: store only facet pairs closer than L (mesh units)")
     p.set_defaults(func=cmd_build_model)
 
     p = sub.add_parser("localize", help="find contact facets and the object pose")
@@ -105,6 +108,7 @@ def build_parser():
     p.add_argument("--method", choices=("fast", "paper"), default="fast")
     p.add_argument("--solver", choices=("closed-form", "lm"))
     p.add_argument("--top", type=int, help="keep the best K hypotheses")
+    p.add_argument("--fix-normals", action="store_true", help="when given a mesh: re-wind faces outward first")
     p.add_argument("-o", "--output", help="write the result as JSON")
     p.set_defaults(func=cmd_localize)
 

@@ -56,7 +56,9 @@ class PairFeatures:
 
     k, l : (P,) int32; dmax, dmin_vertex, alpha : (P,) float32;
     dmin_exact : (P,) float32 or None (models built with ``bounds="paper"``);
-    h_kl, h_lk : (P, 2) float32 direction intervals [lo, hi].
+    h_kl, h_lk : (P, 2) float32 direction intervals [lo, hi];
+    alpha_hi : (P,) float32 or None: for pairs of patches, α is the interval
+    [alpha, alpha_hi]; None for facets (a single angle).
     """
 
     k: np.ndarray
@@ -67,6 +69,12 @@ class PairFeatures:
     alpha: np.ndarray
     h_kl: np.ndarray
     h_lk: np.ndarray
+    alpha_hi: np.ndarray | None = None
+
+    @property
+    def alpha_upper(self):
+        """(P,) upper end of the angle interval (α itself for facet pairs)."""
+        return self.alpha if self.alpha_hi is None else self.alpha_hi
 
     @property
     def num_ordered(self):
@@ -87,9 +95,12 @@ class PairFeatures:
         return self.dmin_exact
 
     def permuted(self, order):
-        """The same features in another order. order : (P,) int."""
-        pick = (lambda a: None if a is None else a[order])
-        return PairFeatures(*(pick(getattr(self, f)) for f in _FIELDS))
+        """These features in another order, permuted in place field by field. order : (P,) int."""
+        for f in _FIELDS:
+            value = getattr(self, f)
+            if value is not None:
+                setattr(self, f, value[order])
+        return self
 
     def to_arrays(self):
         return {f: getattr(self, f) for f in _FIELDS if getattr(self, f) is not None}
@@ -99,7 +110,7 @@ class PairFeatures:
         return cls(*(arrays.get(f) for f in _FIELDS))
 
 
-_FIELDS = ("k", "l", "dmax", "dmin_vertex", "dmin_exact", "alpha", "h_kl", "h_lk")
+_FIELDS = ("k", "l", "dmax", "dmin_vertex", "dmin_exact", "alpha", "h_kl", "h_lk", "alpha_hi")
 
 
 def unordered_pairs(valid_idx, start, stop):
@@ -117,35 +128,97 @@ def unordered_pairs(valid_idx, start, stop):
     return valid_idx[row_of], valid_idx[col]
 
 
-def row_chunks(v, chunk_pairs=CHUNK_PAIRS):
-    """Split rows 0..v-1 of the upper triangle into chunks of about chunk_pairs pairs."""
-    counts = v - np.arange(v)
+def row_chunks(counts, chunk_pairs=CHUNK_PAIRS):
+    """Split rows into runs of about chunk_pairs pairs. counts : (v,) pairs per row."""
     cum = np.cumsum(counts)
+    if len(cum) == 0:
+        return []
     bounds_at = np.searchsorted(cum, np.arange(chunk_pairs, cum[-1], chunk_pairs)) + 1
-    edges = np.unique(np.concatenate([[0], bounds_at, [v]]))
+    edges = np.unique(np.concatenate([[0], bounds_at, [len(counts)]]))
     return list(zip(edges[:-1], edges[1:]))
 
 
-def pair_features(triangles, planes, *, bounds="exact", progress=None):
-    """Characteristics of all unordered valid facet pairs (§3.1, with erratum 4).
+class NearPairs:
+    """Facet pairs (k, l), k <= l, that may lie within ``max_span`` of each other.
 
-    triangles : (m, 3, 3) float; planes : FacetPlanes; bounds : "exact" | "paper".
-    progress : None shows a bar on a terminal for large models.
+    Uses a KD-tree over the facets' bounding spheres: Δmin(k, l) >= |c_k - c_l| - r_k - r_l,
+    so only centre pairs closer than max_span + r_k + r_l can qualify; no m² scan.
+    """
+
+    def __init__(self, triangles, valid_idx, max_span):
+        from scipy.spatial import cKDTree
+
+        self.valid_idx = valid_idx
+        tri = triangles[valid_idx]
+        self.centres = tri.mean(axis=1)
+        self.radii = np.linalg.norm(tri - self.centres[:, None], axis=2).max(axis=1)
+        self.reach = max_span + self.radii + self.radii.max()
+        self.tree = cKDTree(self.centres)
+        self.max_span = max_span
+
+    def count_bound(self):
+        """Upper bound on the number of candidate pairs (k <= l), without listing them."""
+        both = self.tree.count_neighbors(self.tree, self.max_span + 2 * self.radii.max())
+        return int((both + len(self.centres)) // 2)
+
+    def rows(self, start, stop):
+        """Candidate pairs whose first member is row start..stop-1: (k, l) int64 facet indices."""
+        hits = self.tree.query_ball_point(self.centres[start:stop], self.reach[start:stop])
+        counts = np.array([len(h) for h in hits])
+        rows = np.repeat(np.arange(start, stop), counts)
+        cols = np.concatenate(hits).astype(np.int64) if len(rows) else np.empty(0, np.int64)
+        keep = cols >= rows
+        return self.valid_idx[rows[keep]], self.valid_idx[cols[keep]]
+
+
+def pair_features(triangles, planes, *, bounds="exact", progress=None, max_span=None, keep=True, sink=None):
+    """Characteristics of the unordered valid facet pairs (§3.1, with erratum 4).
+
+    triangles : (m, 3, 3) float; planes : FacetPlanes; bounds : "exact" | "paper";
+    max_span : keep only pairs with Δmin <= max_span (None: all pairs);
+    progress : None shows a bar on a terminal for large models;
+    sink : optional callable given each chunk's PairFeatures as it is computed;
+    keep : return the PairFeatures of all pairs (else None: only the sink sees them).
     """
     valid_idx = np.flatnonzero(planes.valid)
     v = len(valid_idx)
+    near = None if max_span is None else NearPairs(triangles, valid_idx, max_span)
     total = v * (v + 1) // 2
     if progress is None:
         progress = total >= PROGRESS_MIN_PAIRS and sys.stderr.isatty()
+    # rows of the upper triangle; with a span, rows hold about total/v candidates each
+    chunks = row_chunks(v - np.arange(v), CHUNK_PAIRS if near is None else CHUNK_PAIRS * 4)
     parts = []
-    with tqdm(total=total, unit="pair", disable=not progress, desc="pair features") as bar:
-        for start, stop in row_chunks(v):
-            k, l = unordered_pairs(valid_idx, start, stop)
-            parts.append(_chunk_features(triangles, planes.normals, k, l, bounds))
-            bar.update(len(k))
-    columns = list(zip(*parts))
-    joined = [None if col[0] is None else np.concatenate(col) for col in columns]
-    return PairFeatures(*joined)
+    with tqdm(total=v, unit="facet", disable=not progress, desc="pair features") as bar:
+        for start, stop in chunks:
+            k, l = unordered_pairs(valid_idx, start, stop) if near is None else near.rows(start, stop)
+            part = _chunk_features(triangles, planes.normals, k, l, bounds)
+            part = part if near is None else _within_span(part, max_span, bounds)
+            if sink is not None:
+                sink(PairFeatures(*part))
+            if keep:
+                parts.append(part)
+            bar.update(stop - start)
+    return PairFeatures(*_concat_fields(parts)) if keep else None
+
+
+def _within_span(part, max_span, bounds):
+    """Keep the pairs of a chunk whose Δmin (as the method uses it) is within max_span."""
+    dmin = part[4] if bounds == "exact" else part[3]
+    keep = dmin <= max_span
+    return [None if a is None else a[keep] for a in part]
+
+
+def _concat_fields(parts):
+    """Concatenate chunk results field by field, releasing each field's chunks as it goes,
+    so the peak is the result plus one field, not twice the result."""
+    fields = []
+    for f in range(len(parts[0])):
+        column = [p[f] for p in parts]
+        fields.append(None if column[0] is None else np.concatenate(column))
+        for p in parts:
+            p[f] = None
+    return fields
 
 
 def _chunk_features(triangles, normals, k, l, bounds):
@@ -155,7 +228,7 @@ def _chunk_features(triangles, normals, k, l, bounds):
         (dmin_vertex, dmax), dmin_exact = triangle_pair_vertex_bounds(triangles, k, l), None
     cos = np.clip(np.einsum("ij,ij->i", normals[k], normals[l]), -1.0, 1.0)
     h_kl, h_lk = _direction_intervals(triangles, normals, k, l)
-    return (
+    return [
         k.astype(np.int32),
         l.astype(np.int32),
         round_up32(dmax),
@@ -164,7 +237,7 @@ def _chunk_features(triangles, normals, k, l, bounds):
         np.arccos(cos).astype(np.float32),
         _round_interval32(h_kl),
         _round_interval32(h_lk),
-    )
+    ]
 
 
 def _round_interval32(h):

@@ -65,14 +65,16 @@ class PairSet:
         return self._csr[reverse]
 
 
-def admissible_pairs(model, conditions, tolerance, bounds="exact", direction=True):
+def admissible_pairs(model, conditions, tolerance, bounds="exact", direction=True, patches=False):
     """S_ij for all finger pairs i < j (eq. 5 with ∪, then the exact interval test).
 
-    direction : also apply the direction constraint (the default method; not the paper's).
+    direction : also apply the direction constraint (the default method; not the paper's);
+    patches : over the model's patches instead of its facets.
     Returns dict (i, j) -> PairSet.
     """
-    first, second, cut = model.table.query_all(conditions, tolerance, bounds, direction)
-    return {pair: PairSet(first[cut[e]:cut[e + 1]], second[cut[e]:cut[e + 1]], model.num_facets)
+    table, m = (model.patch_table, model.patches.count) if patches else (model.facet_table(), model.num_facets)
+    first, second, cut = table.query_all(conditions, tolerance, bounds, direction)
+    return {pair: PairSet(first[cut[e]:cut[e + 1]], second[cut[e]:cut[e + 1]], m)
             for e, pair in enumerate(conditions.pairs)}
 
 

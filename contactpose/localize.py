@@ -9,6 +9,7 @@ its facet triangle. ``method="paper"``: the paper as published — vertex-only
 from __future__ import annotations
 
 import time
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import lru_cache
@@ -17,8 +18,9 @@ import numpy as np
 
 from contactpose import residuals as res
 from contactpose.contacts import Contacts, Tolerance, pair_conditions
-from contactpose.errors import ContactPoseError, PriorError
+from contactpose.errors import ContactPoseError, PriorError, ResourceError
 from contactpose.hypotheses import TripleTest, admissible_pairs, join_tuples, join_tuples_paper
+from contactpose.patches import nearest_members
 from contactpose.metrics import SAME_CLASS_ADDS_FRAC, adds, displacement_bound
 from contactpose.solvers.closed_form import PoseFit, fit_poses
 from contactpose.solvers.lm import fit_lm_all
@@ -233,11 +235,17 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
     if position_noise is None:
         position_noise = DEFAULT_POSITION_NOISE_FRAC * model.diameter
     tolerance = Tolerance.from_noise(position_noise, normal_noise_deg, model_error)
+    _warn_units(model, contacts, tolerance)
     clock = [time.perf_counter()]
     bounds = "exact" if method == "fast" else "paper"
-    S = admissible_pairs(model, pair_conditions(contacts), tolerance, bounds, direction=method == "fast")
+    conditions = pair_conditions(contacts)
+    _check_span(model, conditions, tolerance)
+    use_patches = method == "fast" and model.patch_table is not None
+    S = admissible_pairs(model, conditions, tolerance, bounds, direction=method == "fast", patches=use_patches)
     clock.append(time.perf_counter())
-    if method == "fast":
+    if use_patches:
+        facets = _patch_hypotheses(model, contacts, S, tolerance, prior)
+    elif method == "fast":
         triple = TripleTest(model.planes.normals, contacts.object_normals, tolerance.per_contact_bounds()[1])
         facets = join_tuples(S, contacts.n, triple)
     else:
@@ -269,6 +277,23 @@ def _check_options(method, solver, top, contacts, prior):
     if prior is not None and not isinstance(prior, PosePrior):
         raise ContactPoseError(f"prior must be a contactpose.PosePrior or None, got {type(prior).__name__}")
     return method, solver
+
+
+def _patch_hypotheses(model, contacts, S, tolerance, prior):
+    """Facet tuples from the patch-level tree, one per patch tuple: pose it on the patch
+    planes, give each contact the member facet nearest to it, re-pose on those facets and
+    take the nearest members again (research/design.md)."""
+    patches = model.patches
+    angle = tolerance.per_contact_bounds()[1] + float(patches.cone.max())
+    tuples = join_tuples(S, contacts.n, TripleTest(patches.normals, contacts.object_normals, angle))
+    t0 = None if prior is None else np.broadcast_to(prior.pose[:3, 3], (len(tuples), 3))
+    normals, offsets, centres = patches.normals[tuples], patches.offsets[tuples], patches.centres[tuples]
+    for _ in range(2):
+        fit = fit_poses(normals, offsets, contacts.points, contacts.finger_normals,
+                        angle_tol=tolerance.normal_noise, t0=t0, centroids=centres)
+        facets = nearest_members(patches, model.triangles, tuples, res.to_object_frame(fit.R, fit.t, contacts.points))
+        normals, offsets, centres = model.planes.normals[facets], model.planes.offsets[facets], model.centroids[facets]
+    return facets
 
 
 def _fit(model, contacts, facets, tolerance, prior, solver, method):
@@ -334,8 +359,33 @@ def _status(model, contacts, arrays, tolerance):
     return "ok", ""
 
 
+def contact_spread(contacts):
+    """Largest distance between two contacts."""
+    return float(np.max(np.linalg.norm(contacts.points[:, None] - contacts.points[None], axis=2)))
+
+
+def _check_span(model, conditions, tolerance):
+    """A span-bounded table cannot answer finger pairs farther apart than its span."""
+    span = model.max_span
+    if span is None:
+        return
+    far = np.flatnonzero(conditions.distance + tolerance.distance > span)
+    if len(far):
+        i, j = conditions.pairs[far[0]]
+        raise ResourceError(
+            f"contacts {i} and {j} are {conditions.distance[far[0]]:.4g} apart (± {tolerance.distance:.3g}), "
+            f"beyond the model's max_span {span:.4g}; rebuild the model with a larger --max-span")
+
+
+def _warn_units(model, contacts, tolerance):
+    spread = contact_spread(contacts)
+    if spread > model.diameter + tolerance.distance:
+        warnings.warn(f"contacts span {spread:.4g}, more than the object's diameter {model.diameter:.4g}: "
+                      "are contacts and mesh in the same units?", stacklevel=3)
+
+
 def _no_hypothesis_hint(model, contacts, tolerance):
-    spread = float(np.max(np.linalg.norm(contacts.points[:, None] - contacts.points[None], axis=2)))
+    spread = contact_spread(contacts)
     if spread > model.diameter + tolerance.distance:
         return (f"contacts are {spread:.4g} apart but the object is only {model.diameter:.4g} across: "
                 "wrong units?")

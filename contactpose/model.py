@@ -21,13 +21,19 @@ import trimesh
 
 from contactpose import tol
 from contactpose.errors import MeshError, ModelFileError
-from contactpose.features import PairFeatures, pair_features
-from contactpose.table import DEFAULT_BINS, PairTable, check_bins, check_memory
+from contactpose.features import NearPairs, PairFeatures, pair_features
+from contactpose.patches import PatchReducer, Patches, find_patches
+from contactpose.table import DEFAULT_BINS, STORED_BYTES_PER_PAIR, PairTable, check_bins, check_memory
 
 log = logging.getLogger(__name__)
 
 #: Version of the .npz model file layout. Bump on any incompatible change.
 FORMAT_VERSION = 1
+#: Default patch tolerance: half the default normal noise of 1°, so a patch is flatter
+#: than the sensor can tell apart (research/design.md).
+DEFAULT_PATCH_TOL_DEG = 0.5
+#: facet_pairs="auto" drops the facet-level table above this size when patches serve.
+FACET_TABLE_AUTO_BYTES = 512 * 2**20
 BOUNDS = ("exact", "paper")
 
 
@@ -131,6 +137,22 @@ def winding_report(vertices, faces):
     return None
 
 
+def rewind_outward(vertices, faces):
+    """Faces re-wound consistently outward with trimesh's repair, in the same order.
+
+    vertices : (V, 3), faces : (m, 3) int  ->  faces (m, 3) int, with flipped faces'
+    last two indices swapped (facet indices are unchanged).
+    """
+    merged = trimesh.Trimesh(vertices, faces, process=False)
+    merged.merge_vertices()
+    before = merged.face_normals.copy()
+    trimesh.repair.fix_normals(merged)
+    flipped = np.einsum("ij,ij->i", before, merged.face_normals) < 0
+    fixed = faces.copy()
+    fixed[flipped] = fixed[flipped][:, [0, 2, 1]]
+    return fixed
+
+
 def mesh_hash(vertices, faces):
     """SHA-256 of the vertex and face arrays, as stored (float64, int64)."""
     digest = hashlib.sha256()
@@ -154,41 +176,64 @@ class ObjectModel:
     diameter: float
     mesh_hash: str
     build_seconds: dict = field(default_factory=dict)
+    patches: Patches | None = None
+    patch_table: PairTable | None = None
 
     # ----------------------------------------------------------------- build
     @classmethod
-    def from_mesh(cls, mesh, *, bins=DEFAULT_BINS, bounds="exact", progress=None):
+    def from_mesh(cls, mesh, *, bins=DEFAULT_BINS, bounds="exact", progress=None, fix_normals=False,
+                  max_span=None, patch_tol_deg=DEFAULT_PATCH_TOL_DEG, facet_pairs="auto"):
         """Build the model of a mesh (§3.1).
 
         mesh : path or trimesh.Trimesh; bins : (p_dmax, p_dmin, p_alpha) bin counts;
         bounds : "exact" (triangle–triangle Δmin) or "paper" (vertex-only Δmin);
-        progress : show a progress bar (default: only on a terminal, for large models).
+        progress : show a progress bar (default: only on a terminal, for large models);
+        fix_normals : re-wind faces consistently outward first (face order is kept);
+        max_span : the hand's span L in length units: only pairs with Δmin <= L are stored,
+        found with a spatial index (None: all pairs);
+        patch_tol_deg : connected facets whose normals are within this angle of a patch's
+        first facet form one patch for the default method's search (0: exactly coplanar;
+        None: no patches). Default: half the default normal noise;
+        facet_pairs : keep the facet-level pair table, which the paper's method needs
+        (True, False, or "auto": keep it unless patches serve the default method and the
+        facet table would exceed FACET_TABLE_AUTO_BYTES).
         """
         if bounds not in BOUNDS:
             raise MeshError(f"bounds must be one of {BOUNDS}, got {bounds!r}")
         bins = check_bins(bins)
         start = time.perf_counter()
         vertices, faces = load_mesh(mesh)
+        if fix_normals:
+            faces = rewind_outward(vertices, faces)
         triangles = vertices[faces]
         diameter = mesh_diameter(vertices)
         if not diameter > 0:
             raise MeshError("mesh has zero extent (all vertices coincide)")
         planes = facet_planes(triangles, diameter)
         _report_facets(planes, vertices, faces)
-        check_memory(int(planes.valid.sum()), bounds)
+        max_span = _check_span(max_span)
+        pair_count = _pair_count(triangles, planes, max_span)
+        check_memory(pair_count if facet_pairs is not False else 0, len(faces), max_span)
         t_planes = time.perf_counter()
-        features = pair_features(triangles, planes, bounds=bounds, progress=progress)
+        patches = _find_patches(vertices, faces, planes, bounds, patch_tol_deg)
+        keep = _keep_facet_pairs(facet_pairs, patches, pair_count)
+        reducer = PatchReducer(patches) if patches is not None and patches.worthwhile else None
+        features = pair_features(triangles, planes, bounds=bounds, progress=progress, max_span=max_span,
+                                 keep=keep, sink=reducer)
         t_features = time.perf_counter()
-        table = PairTable.build(features, bins)
+        patch_table = None if reducer is None else PairTable.build(reducer.features(), bins, max_span)
+        t_patches = time.perf_counter()
+        table = PairTable.build(features, bins, max_span) if keep else None
         t_table = time.perf_counter()
         seconds = {
             "planes": t_planes - start,
             "features": t_features - t_planes,
-            "table": t_table - t_features,
+            "patches": t_patches - t_features,
+            "table": t_table - t_patches,
             "total": t_table - start,
         }
         return cls(vertices, faces, planes, table, bounds, diameter,
-                   mesh_hash(vertices, faces), seconds)
+                   mesh_hash(vertices, faces), seconds, patches, patch_table)
 
     # ------------------------------------------------------------ properties
     @property
@@ -198,13 +243,20 @@ class ObjectModel:
 
     @property
     def features(self):
-        """PairFeatures of the unordered valid pairs, in table order."""
-        return self.table.features
+        """PairFeatures of the unordered valid facet pairs, in table order."""
+        return self.facet_table().features
+
+    def facet_table(self):
+        """The facet-level table K3; ModelFileError if the model was built without it."""
+        if self.table is None:
+            raise ModelFileError("this model was built without facet pairs (facet_pairs=False, or 'auto' for a "
+                                 "large model); the paper's method needs them: rebuild with facet_pairs=True")
+        return self.table
 
     @property
     def num_pairs(self):
-        """Number of ordered admissible facet pairs the table answers for (k = l included)."""
-        return self.features.num_ordered
+        """Ordered facet pairs the facet table answers for (k = l included); patch pairs without it."""
+        return (self.patch_table if self.table is None else self.table).features.num_ordered
 
     @cached_property
     def triangles(self):
@@ -237,7 +289,7 @@ class ObjectModel:
 
     @property
     def bins(self):
-        return self.table.bins
+        return (self.patch_table if self.table is None else self.table).bins
 
     # ----------------------------------------------------------- persistence
     def save(self, path):
@@ -255,8 +307,15 @@ class ObjectModel:
             "areas": self.planes.areas,
             "valid": self.planes.valid,
         }
-        arrays.update({f"features_{k}": v for k, v in self.features.to_arrays().items()})
-        arrays.update({f"table_{k}": v for k, v in self.table.to_arrays().items()})
+        if self.table is not None:
+            arrays.update({f"features_{k}": v for k, v in self.features.to_arrays().items()})
+            arrays.update({f"table_{k}": v for k, v in self.table.to_arrays().items()})
+        if self.patches is not None:
+            arrays.update({f"patches_{k}": v for k, v in self.patches.to_arrays().items()})
+        if self.patch_table is not None:
+            arrays.update({f"pfeatures_{k}": v for k, v in self.patch_table.features.to_arrays().items()})
+            arrays.update({f"ptable_{k}": v for k, v in self.patch_table.to_arrays().items()})
+        arrays["content_hash"] = np.array(content_hash(arrays))
         with open(path, "wb") as fh:
             np.savez(fh, **arrays)
         return path
@@ -270,6 +329,10 @@ class ObjectModel:
         """
         path = os.fspath(path)
         data = _read_npz(path)
+        _check_version(path, data)
+        stored = data.pop("content_hash", None)
+        if stored is None or stored.shape != () or str(stored) != content_hash(data):
+            raise ModelFileError(f"model file {path!r} is corrupt: its arrays do not match its content hash")
         try:
             model = cls._from_arrays(data)
         except KeyError as exc:
@@ -279,20 +342,26 @@ class ObjectModel:
 
     @classmethod
     def _from_arrays(cls, data):
-        version = int(data["format_version"])
-        if version != FORMAT_VERSION:
-            raise ModelFileError(
-                f"model file has format version {version}, this contactpose reads version {FORMAT_VERSION}; rebuild it with `contactpose build-model`"
-            )
         vertices, faces = check_mesh_arrays(data["vertices"], data["faces"])
         planes = FacetPlanes(data["normals"], data["offsets"], data["areas"], data["valid"])
-        features = PairFeatures.from_arrays({k[9:]: v for k, v in data.items() if k.startswith("features_")})
-        table = PairTable.from_arrays({k[6:]: v for k, v in data.items() if k.startswith("table_")}, features)
+        table = None
+        if "table_offsets" in data or "ptable_offsets" not in data:
+            table = PairTable.from_arrays(_prefixed(data, "table_"), PairFeatures.from_arrays(_prefixed(data, "features_")))
+        patches = Patches.from_arrays(_prefixed(data, "patches_")) if "patches_labels" in data else None
+        patch_table = None
+        if "ptable_offsets" in data:
+            patch_table = PairTable.from_arrays(_prefixed(data, "ptable_"),
+                                                PairFeatures.from_arrays(_prefixed(data, "pfeatures_")))
         stored_hash = str(data["mesh_hash"])
         if mesh_hash(vertices, faces) != stored_hash:
             raise ModelFileError("model file is corrupt: its mesh does not match its stored hash")
         return cls(vertices, faces, planes, table, str(data["bounds"]),
-                   float(data["diameter"]), stored_hash)
+                   float(data["diameter"]), stored_hash, {}, patches, patch_table)
+
+    @property
+    def max_span(self):
+        """The hand span the table was built for, or None (all pairs)."""
+        return (self.patch_table if self.table is None else self.table).max_span
 
     def _check_expected(self, path, *, mesh, bins, bounds):
         if mesh is not None:
@@ -310,23 +379,95 @@ class ObjectModel:
             "facets": self.num_facets,
             "degenerate_facets": int((~self.planes.valid).sum()),
             "ordered_pairs": self.num_pairs,
+            "facet_table": self.table is not None,
             "bins": list(self.bins),
             "bounds": self.bounds,
             "diameter": self.diameter,
+            "max_span": self.max_span,
+            "patches": None if self.patches is None else self.patches.count,
         }
+
+
+def _find_patches(vertices, faces, planes, bounds, tol_deg):
+    """Patches for the default method, or None (no patches, or a paper-bounds model)."""
+    if tol_deg is None or bounds != "exact":
+        return None
+    if not (np.isfinite(tol_deg) and 0 <= tol_deg < 90):
+        raise MeshError(f"patch_tol_deg must be an angle in [0, 90) degrees or None, got {tol_deg!r}")
+    return find_patches(vertices, faces, planes, tol_deg)
+
+
+def _keep_facet_pairs(facet_pairs, patches, pair_count):
+    """Whether to keep the facet-level table (see ObjectModel.from_mesh)."""
+    if facet_pairs not in (True, False, "auto"):
+        raise MeshError(f"facet_pairs must be True, False or 'auto', got {facet_pairs!r}")
+    serves = patches is not None and patches.worthwhile
+    if facet_pairs == "auto":
+        return not serves or pair_count * STORED_BYTES_PER_PAIR <= FACET_TABLE_AUTO_BYTES
+    if not facet_pairs and not serves:
+        raise MeshError("facet_pairs=False needs patches that shrink the search (set patch_tol_deg)")
+    return facet_pairs
+
+
+def _check_span(max_span):
+    if max_span is None:
+        return None
+    try:
+        value = float(max_span)
+    except (TypeError, ValueError):
+        value = float("nan")
+    if not (np.isfinite(value) and value > 0):
+        raise MeshError(f"max_span must be a positive length in the mesh's units, got {max_span!r}")
+    return value
+
+
+def _pair_count(triangles, planes, max_span):
+    """Unordered pairs the table will hold (an upper bound with a span)."""
+    v = int(planes.valid.sum())
+    if max_span is None:
+        return v * (v + 1) // 2
+    return NearPairs(triangles, np.flatnonzero(planes.valid), max_span).count_bound()
+
+
+def content_hash(arrays):
+    """SHA-256 over every array's name, dtype, shape and bytes, in name order."""
+    digest = hashlib.sha256()
+    for key in sorted(arrays):
+        a = np.ascontiguousarray(arrays[key])
+        digest.update(f"{key}|{a.dtype.str}|{a.shape}|".encode())
+        digest.update(a.tobytes())
+    return digest.hexdigest()
+
+
+def _check_version(path, data):
+    """The file's format version must be this library's."""
+    version = data.get("format_version")
+    try:
+        version = int(version)
+    except (TypeError, ValueError):
+        raise ModelFileError(f"model file {path!r} has no readable format version: not a contactpose model") from None
+    if version != FORMAT_VERSION:
+        raise ModelFileError(
+            f"model file {path!r} has format version {version}, this contactpose reads version "
+            f"{FORMAT_VERSION}; rebuild it with `contactpose build-model`")
+
+
+def _prefixed(data, prefix):
+    return {k[len(prefix):]: v for k, v in data.items() if k.startswith(prefix)}
 
 
 def _read_npz(path):
     """Load every array of an .npz into memory, turning every failure into ModelFileError."""
-    import zipfile
-
     if not os.path.isfile(path):
         raise ModelFileError(f"model file {path!r} does not exist")
     try:
         with np.load(path, allow_pickle=False) as npz:
             return {key: npz[key] for key in npz.files}
-    except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError) as exc:
-        raise ModelFileError(f"cannot read model file {path!r}: {exc} (truncated, corrupt or not a .npz model)") from None
+    except MemoryError:
+        raise
+    except Exception as exc:  # any failure to decode the bytes means a damaged or foreign file
+        raise ModelFileError(f"cannot read model file {path!r}: {type(exc).__name__}: {exc} "
+                             "(truncated, corrupt or not a .npz model)") from None
 
 
 def _report_facets(planes, vertices, faces):

@@ -102,11 +102,14 @@ class ScanOptions:
     camera_location: Sequence[float] | None = None
     #: One of METHODS.
     method: str = "poisson"
-    #: Poisson octree depth; default: finest cell about one voxel (clamped to 5..10).
+    #: Poisson octree depth; default: finest cell about ``max(voxel, spacing)`` (clamped to 5..10).
     depth: int | None = None
+    #: Poisson's minimum samples per octree node: above 1.5 it averages more
+    #: noise and runs faster.
     samples_per_node: float = 2.0
     #: Poisson trimming: drop vertices whose density is below this quantile *and*
-    #: that lie farther than ``trim_distance`` (default ``2 * voxel``) from the cloud.
+    #: that lie farther than ``trim_distance`` from the cloud (default two cells,
+    #: a cell being ``max(voxel, spacing)``), so only unsupported surface goes.
     density_quantile: float = 0.05
     trim_distance: float | None = None
     #: Ball-pivoting radii; default ``spacing * (1, 2, 4)``.
@@ -224,16 +227,8 @@ def scan_to_mesh(cloud_or_path, options: ScanOptions | None = None, *, progress:
         step = _stepper(bar, timings)
 
         with step("load"):
-            points, normals = load_cloud(cloud_or_path)
-            n_input = len(points)
-            finite = np.isfinite(points).all(axis=1)
-            if normals is not None:
-                # a non-finite normal is only a missing normal: estimate those points' own
-                bad = ~np.isfinite(normals).all(axis=1)
-                normals = np.where(bad[:, None], 0.0, normals)
-            points, normals = _take(points, normals, finite)
-            check_cloud(points, opt.min_points, opt.planar_ratio,
-                        what=f"cloud ({n_input} points read, {len(points)} finite)")
+            points, normals, n_input = _load_finite(cloud_or_path, opt)
+            n_finite = len(points)
         with step("crop"):
             if opt.crop is not None:
                 points, normals = _take(points, normals, crop_mask(points, opt.crop))
@@ -241,14 +236,7 @@ def scan_to_mesh(cloud_or_path, options: ScanOptions | None = None, *, progress:
             n_cropped = len(points)
             measured = points
         with step("outliers"):
-            pcd = _to_pcd(points, normals)
-            if opt.outlier_min_neighbors > 0:
-                out_radius = opt.outlier_radius or opt.outlier_radius_spacings * float(
-                    np.quantile(pcd.compute_nearest_neighbor_distance(), 0.9))
-                params["outlier_radius"] = out_radius
-                pcd, _ = pcd.remove_radius_outlier(int(opt.outlier_min_neighbors), float(out_radius))
-            if opt.outlier_std > 0:
-                pcd, _ = pcd.remove_statistical_outlier(int(opt.outlier_neighbors), float(opt.outlier_std))
+            pcd = remove_outliers(_to_pcd(points, normals), opt, params)
             filtered = np.asarray(pcd.points)
             check_cloud(filtered, opt.min_points, opt.planar_ratio, what="cloud after outlier removal")
             diameter = float(np.linalg.norm(filtered.max(axis=0) - filtered.min(axis=0)))
@@ -285,17 +273,10 @@ def scan_to_mesh(cloud_or_path, options: ScanOptions | None = None, *, progress:
         with step("distance"):
             dist, n_used = cloud_to_mesh_distance(measured, tm, opt.report_max_points)
 
-    report = ScanReport(
-        n_input=n_input, n_finite=int(finite.sum()), n_cropped=n_cropped, n_filtered=n_filtered,
-        n_downsampled=len(pcd.points), n_faces_reconstructed=n_reconstructed, n_faces=len(tm.faces), n_vertices=len(tm.vertices),
-        watertight=bool(tm.is_watertight), flipped=flipped, method=opt.method, diameter=diameter,
-        distance_points=n_used,
-        distance_mean=float(dist.mean()), distance_p95=float(np.percentile(dist, 95)),
-        distance_max=float(dist.max()),
-        distance_mean_pct=100.0 * float(dist.mean()) / diameter,
-        distance_p95_pct=100.0 * float(np.percentile(dist, 95)) / diameter,
-        distance_max_pct=100.0 * float(dist.max()) / diameter,
-        parameters=params, timings=timings)
+    counts = dict(n_input=n_input, n_finite=n_finite, n_cropped=n_cropped, n_filtered=n_filtered,
+                  n_downsampled=len(pcd.points), n_faces_reconstructed=n_reconstructed)
+    report = _make_report(tm, dist, diameter, counts, flipped=flipped, method=opt.method,
+                          distance_points=n_used, parameters=params, timings=timings)
     log.info("scan: %d facets, p95 distance %.3g %% of diameter, %.2f s",
              report.n_faces, report.distance_p95_pct, report.seconds)
     return ScanResult(mesh=tm, report=report)
@@ -382,7 +363,8 @@ def write_mesh(mesh: trimesh.Trimesh, path) -> None:
         raise ScanError(f"cannot write mesh to {path}: {exc}; use .ply, .stl, .obj or .off") from exc
 
 
-def cloud_to_mesh_distance(points: np.ndarray, mesh: trimesh.Trimesh, max_points: int = 200_000) -> tuple[np.ndarray, int]:
+def cloud_to_mesh_distance(points: np.ndarray, mesh: trimesh.Trimesh,
+                           max_points: int = 200_000) -> tuple[np.ndarray, int]:
     """Unsigned distance from points to a mesh surface (Open3D ray-casting scene).
 
     Parameters
@@ -422,6 +404,18 @@ def crop_mask(points: np.ndarray, crop) -> np.ndarray:
     for box in boxes:
         keep[np.asarray(box.get_point_indices_within_bounding_box(pcd.points), dtype=np.int64)] = True
     return keep
+
+
+def remove_outliers(pcd: o3d.geometry.PointCloud, opt: ScanOptions, params: dict) -> o3d.geometry.PointCloud:
+    """Radius outlier removal (scaled to the spacing), then optional statistical removal."""
+    if opt.outlier_min_neighbors > 0:
+        radius = opt.outlier_radius or opt.outlier_radius_spacings * float(
+            np.quantile(pcd.compute_nearest_neighbor_distance(), 0.9))
+        params["outlier_radius"] = radius
+        pcd, _ = pcd.remove_radius_outlier(int(opt.outlier_min_neighbors), float(radius))
+    if opt.outlier_std > 0:
+        pcd, _ = pcd.remove_statistical_outlier(int(opt.outlier_neighbors), float(opt.outlier_std))
+    return pcd
 
 
 def estimate_normals(pcd: o3d.geometry.PointCloud, radius: float, opt: ScanOptions) -> o3d.geometry.PointCloud:
@@ -587,7 +581,8 @@ def add_scan_options(parser, prefix: str = "") -> None:
     add("voxel", type=float, metavar="V", help="voxel size for downsampling (default diameter/150; 0: off)")
     add("depth", type=int, metavar="D", help="Poisson octree depth (default: cell about one voxel)")
     add("density-quantile", type=float, metavar="Q", help="Poisson trimming quantile (default 0.05)")
-    add("outlier-radius", type=float, metavar="R", help="radius outlier removal radius (default 4 x p90 neighbour spacing)")
+    add("outlier-radius", type=float, metavar="R",
+        help="radius outlier removal radius (default 4 x p90 neighbour spacing)")
     add("outlier-min-neighbors", type=int, metavar="K", help="neighbours needed within the radius (default 5; 0: off)")
     add("outlier-std", type=float, metavar="S", help="statistical outlier cut in std (default 0: off)")
     add("outlier-neighbors", type=int, metavar="K", help="neighbours for statistical outlier removal (default 20)")
@@ -635,6 +630,32 @@ def run_scan_cli(args) -> int:
 
 
 # --------------------------------------------------------------------- helpers
+
+
+def _load_finite(source, opt: ScanOptions) -> tuple[np.ndarray, np.ndarray | None, int]:
+    """Finite points (n, 3), their normals or None, and the count read; ScanError if too few."""
+    points, normals = load_cloud(source)
+    n_input = len(points)
+    finite = np.isfinite(points).all(axis=1)
+    if normals is not None:
+        # a non-finite normal counts as missing: zero, filled in by estimate_normals
+        normals = np.where(np.isfinite(normals).all(axis=1)[:, None], normals, 0.0)
+    points, normals = _take(points, normals, finite)
+    dropped = n_input - len(points)
+    what = f"cloud ({n_input} points, {dropped} NaN or infinite dropped)" if dropped else "cloud"
+    check_cloud(points, opt.min_points, opt.planar_ratio, what=what)
+    return points, normals, n_input
+
+
+def _make_report(tm, dist, diameter: float, counts: dict, **fields) -> ScanReport:
+    """ScanReport from the output mesh and the cloud -> mesh distances (m,)."""
+    mean, p95, top = float(dist.mean()), float(np.percentile(dist, 95)), float(dist.max())
+    return ScanReport(
+        **counts, n_faces=len(tm.faces), n_vertices=len(tm.vertices),
+        watertight=bool(tm.is_watertight), diameter=diameter,
+        distance_mean=mean, distance_p95=p95, distance_max=top,
+        distance_mean_pct=100.0 * mean / diameter, distance_p95_pct=100.0 * p95 / diameter,
+        distance_max_pct=100.0 * top / diameter, **fields)
 
 
 def _stepper(bar, timings: dict):

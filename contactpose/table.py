@@ -25,9 +25,12 @@ from contactpose.features import PairFeatures
 #: 32 distance bins keep the number of visited bins (≈ p_dmax·p_dmin/4 segments) small
 #: while the exact test removes the bins' excess. research/bins.md gives the measurements.
 DEFAULT_BINS = (32, 32, 64)
-#: Bytes per stored unordered pair at peak during a build: k, l (int32), four float32
-#: characteristics, plus the int64 sort key and int64 permutation and one float32 temporary.
-BUILD_BYTES_PER_PAIR = 8 + 16 + 8 + 8 + 4
+#: Bytes per stored unordered pair: k, l (int32), Δmax, Δmin exact, Δmin vertex, α and the
+#: two direction intervals (float32).
+STORED_BYTES_PER_PAIR = 8 + 16 + 16
+#: Extra bytes per pair at the build's peak: the int64 sort key and permutation, and one
+#: permuted field (at most 8 bytes) while the table is sorted.
+SORT_BYTES_PER_PAIR = 8 + 8 + 8
 
 
 def check_bins(bins):
@@ -42,23 +45,22 @@ def check_bins(bins):
     return values
 
 
-def estimate_bytes(num_valid):
-    """Peak memory of building the pair table for num_valid valid facets, in bytes."""
-    pairs = num_valid * (num_valid + 1) // 2
-    return pairs * BUILD_BYTES_PER_PAIR
+def estimate_bytes(num_pairs):
+    """Peak memory of building a pair table of num_pairs unordered pairs, in bytes."""
+    return num_pairs * (STORED_BYTES_PER_PAIR + SORT_BYTES_PER_PAIR)
 
 
-def check_memory(num_valid, bounds="exact"):
+def check_memory(num_pairs, num_facets, max_span=None):
     """Refuse, before building, a table that will not fit in the available memory."""
     import psutil
 
-    need = estimate_bytes(num_valid)
+    need = estimate_bytes(num_pairs)
     available = psutil.virtual_memory().available
     if need > 0.8 * available:
+        advice = "a smaller max_span" if max_span is not None else "max_span (the hand's span, `--max-span L`)"
         raise ResourceError(
-            f"the pair table for {num_valid} facets needs about {need / 2**30:.1f} GiB, "
-            f"but only {available / 2**30:.1f} GiB is available; reduce the mesh (decimate) "
-            "or bound the hand span"
+            f"the pair table for {num_facets} facets ({num_pairs:,} pairs) needs about {need / 2**30:.1f} GiB, "
+            f"but only {available / 2**30:.1f} GiB is available; decimate the mesh or set {advice}"
         )
     return need
 
@@ -68,7 +70,10 @@ class PairTable:
     """K3: features sorted by bin key, with per-bin offsets.
 
     features : PairFeatures in key order; offsets : (p1·p2·p3 + 1,) int64;
-    bins : (3,) int; mins, widths : (3,) float (Min and q of eq. 3 per axis).
+    bins : (3,) int; mins, widths : (3,) float (Min and q of eq. 3 per axis);
+    max_span : pairs with Δmin above it are not stored (None: all pairs).
+    Angles are binned on the interval's lower end; ``alpha_width`` is the widest interval,
+    by which a query widens its lower α bin.
     """
 
     features: PairFeatures
@@ -76,9 +81,15 @@ class PairTable:
     bins: tuple
     mins: np.ndarray
     widths: np.ndarray
+    max_span: float | None = None
+
+    @property
+    def alpha_width(self):
+        f = self.features
+        return 0.0 if f.alpha_hi is None or len(f.alpha) == 0 else float(np.max(f.alpha_hi - f.alpha))
 
     @classmethod
-    def build(cls, features, bins):
+    def build(cls, features, bins, max_span=None):
         """Sort the pairs into K3 (eqs. 3–4). features : PairFeatures (any order)."""
         dmin = features.dmin_exact if features.dmin_exact is not None else features.dmin_vertex
         axes = (features.dmax, dmin, features.alpha)
@@ -88,21 +99,25 @@ class PairTable:
         key = _flat_key(*(bin_index(a, lo, q, p) for a, lo, q, p in zip(axes, mins, widths, bins)), bins)
         order = np.argsort(key, kind="stable")
         counts = np.bincount(key, minlength=int(np.prod(bins)))
+        del key
         offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-        return cls(features.permuted(order), offsets, tuple(bins), mins, widths)
+        return cls(features.permuted(order), offsets, tuple(bins), mins, widths, max_span)
 
     def to_arrays(self):
-        return {"offsets": self.offsets, "bins": np.array(self.bins), "mins": self.mins, "widths": self.widths}
+        span = np.nan if self.max_span is None else self.max_span
+        return {"offsets": self.offsets, "bins": np.array(self.bins), "mins": self.mins, "widths": self.widths,
+                "max_span": np.array(span)}
 
     @classmethod
     def from_arrays(cls, arrays, features):
+        span = float(arrays["max_span"])
         bins = tuple(int(b) for b in arrays["bins"])
         offsets = arrays["offsets"]
         if len(offsets) != int(np.prod(bins)) + 1 or offsets[-1] != len(features.k):
             from contactpose.errors import ModelFileError
 
             raise ModelFileError("model file is corrupt: the table offsets do not match its pairs")
-        return cls(features, offsets, bins, arrays["mins"], arrays["widths"])
+        return cls(features, offsets, bins, arrays["mins"], arrays["widths"], None if np.isnan(span) else span)
 
     def query(self, distance, angle, sigma_distance, sigma_angle, bounds="exact"):
         """Admissible unordered pairs for one finger pair (eq. 5 plus the exact test).
@@ -114,7 +129,7 @@ class PairTable:
         limits = query_limits(distance, angle, sigma_distance, sigma_angle)
         f = self.features
         return _gather(self.offsets, np.asarray(self.bins), self.mins, self.widths,
-                       f.dmax, f.dmin(bounds), f.alpha, *limits)
+                       f.dmax, f.dmin(bounds), f.alpha, f.alpha_upper, self.alpha_width, *limits)
 
     def query_pairs(self, distance, angle, sigma_distance, sigma_angle, bounds="exact", direction=None):
         """Like :meth:`query`, expanded to ordered pairs: (first (s,) int64, second (s,) int64).
@@ -136,7 +151,8 @@ class PairTable:
         sigma_h = tolerance.direction(c.distance)
         f = self.features
         return _query_all(self.offsets, np.asarray(self.bins), self.mins, self.widths, f.dmax, f.dmin(bounds),
-                          f.alpha, f.k, f.l, f.h_kl, f.h_lk, c.distance, c.angle, c.h_ij, c.h_ji, sigma_h,
+                          f.alpha, f.alpha_upper, self.alpha_width, f.k, f.l, f.h_kl, f.h_lk,
+                          c.distance, c.angle, c.h_ij, c.h_ji, sigma_h,
                           tolerance.distance, tolerance.angle, direction,
                           tol.LENGTH_SLACK_REL, tol.ANGLE_SLACK)
 
@@ -151,7 +167,7 @@ class PairTable:
         """Reference twin of :meth:`query`: the exact test over every stored pair."""
         lo_d, hi_d, lo_a, hi_a = query_limits(distance, angle, sigma_distance, sigma_angle)
         f = self.features
-        ok = (f.dmax >= lo_d) & (f.dmin(bounds) <= hi_d) & (f.alpha >= lo_a) & (f.alpha <= hi_a)
+        ok = (f.dmax >= lo_d) & (f.dmin(bounds) <= hi_d) & (f.alpha_upper >= lo_a) & (f.alpha <= hi_a)
         return np.flatnonzero(ok)
 
 
@@ -182,15 +198,16 @@ def _bin(value, lo, width, p):
 
 
 @numba.njit(cache=True)
-def _gather(offsets, bins, mins, widths, dmax, dmin, alpha, lo_d, hi_d, lo_a, hi_a):
+def _gather(offsets, bins, mins, widths, dmax, dmin, alpha, alpha_hi, alpha_width, lo_d, hi_d, lo_a, hi_a):
     """Union of the admissible bins of eq. (5), then the exact interval test.
 
-    Bins: a in [t1(Δ̃ - σ_Δ), p1 - 1], b in [0, t2(Δ̃ + σ_Δ)], c in [t3(α̃ - σ_α), t3(α̃ + σ_α)].
+    Bins: a in [t1(Δ̃ - σ_Δ), p1 - 1], b in [0, t2(Δ̃ + σ_Δ)], c in [t3(α̃ - σ_α - w), t3(α̃ + σ_α)],
+    w the widest stored angle interval (0 for facets).
     """
     p1, p2, p3 = bins[0], bins[1], bins[2]
     a0 = _bin(lo_d, mins[0], widths[0], p1)
     b1 = _bin(hi_d, mins[1], widths[1], p2)
-    c0 = _bin(lo_a, mins[2], widths[2], p3)
+    c0 = _bin(lo_a - alpha_width, mins[2], widths[2], p3)
     c1 = _bin(hi_a, mins[2], widths[2], p3)
     total = 0
     for a in range(a0, p1):
@@ -203,22 +220,22 @@ def _gather(offsets, bins, mins, widths, dmax, dmin, alpha, lo_d, hi_d, lo_a, hi
         for b in range(0, b1 + 1):
             base = (a * p2 + b) * p3
             for e in range(offsets[base + c0], offsets[base + c1 + 1]):
-                if dmax[e] >= lo_d and dmin[e] <= hi_d and alpha[e] >= lo_a and alpha[e] <= hi_a:
+                if dmax[e] >= lo_d and dmin[e] <= hi_d and alpha_hi[e] >= lo_a and alpha[e] <= hi_a:
                     out[count] = e
                     count += 1
     return out[:count]
 
 
 @numba.njit(cache=True)
-def _query_all(offsets, bins, mins, widths, dmax, dmin, alpha, k, l, h_kl, h_lk, distance, angle,
-               h_ij, h_ji, sigma_h, sigma_d, sigma_a, use_direction, slack_rel, slack_angle):
+def _query_all(offsets, bins, mins, widths, dmax, dmin, alpha, alpha_hi, alpha_width, k, l, h_kl, h_lk,
+               distance, angle, h_ij, h_ji, sigma_h, sigma_d, sigma_a, use_direction, slack_rel, slack_angle):
     """:meth:`PairTable.query_pairs` for every finger pair; results concatenated."""
     parts_first = []
     parts_second = []
     bounds = np.zeros(len(distance) + 1, np.int64)
     for e in range(len(distance)):
         slack_d = slack_rel * max(distance[e], sigma_d)
-        idx = _gather(offsets, bins, mins, widths, dmax, dmin, alpha,
+        idx = _gather(offsets, bins, mins, widths, dmax, dmin, alpha, alpha_hi, alpha_width,
                       distance[e] - sigma_d - slack_d, distance[e] + sigma_d + slack_d,
                       angle[e] - sigma_a - slack_angle, angle[e] + sigma_a + slack_angle)
         first, second = _expand_ordered(k, l, idx, h_kl, h_lk, use_direction, h_ij[e], h_ji[e], sigma_h[e])
