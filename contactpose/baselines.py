@@ -35,8 +35,10 @@ from contactpose.geometry import point_triangle_distance
 
 #: Surface samples for the nearest-facet look-up of the contact likelihood.
 SURFACE_SAMPLES = 20_000
+#: Fewest samples on any facet (its centroid and random points).
+MIN_PER_FACET = 4
 #: Nearest samples whose facets are tested exactly for each contact.
-NEAREST_FACETS = 4
+NEAREST_FACETS = 16
 #: Dimension of the pose space (for the Scaling Series zoom factor 2^(-1/dim)).
 POSE_DIM = 6
 
@@ -55,22 +57,46 @@ class Surface:
     center: np.ndarray
     radius: float
     tree: cKDTree
+    scene: object = None
+
+    def closest_facets(self, points):
+        """Facet of the exact closest surface point (Open3D ray-casting scene). points : (N, 3) -> (N,) int"""
+        import open3d as o3d
+
+        query = o3d.core.Tensor(np.ascontiguousarray(points, dtype=np.float32))
+        return self.scene.compute_closest_points(query)["primitive_ids"].numpy().astype(np.int64)
 
 
-def sample_surface(model, count=SURFACE_SAMPLES, seed=0):
-    """Area-uniform surface samples of a model's valid facets (deterministic for a seed)."""
+def sample_surface(model, count=SURFACE_SAMPLES, seed=0, min_per_facet=MIN_PER_FACET):
+    """Surface samples of a model's valid facets (deterministic for a seed): about ``count``
+    area-uniform points, and at least ``min_per_facet`` on every facet (the centroid and
+    random points), so that small facets are found by the nearest-sample look-up."""
     rng = np.random.default_rng(seed)
     valid = np.flatnonzero(model.planes.valid)
     areas = model.planes.areas[valid]
-    facets = valid[rng.choice(len(valid), size=count, p=areas / areas.sum())]
-    u, v = rng.random((2, count))
+    per_facet = np.maximum(rng.multinomial(count, areas / areas.sum()), min_per_facet)
+    facets = np.repeat(valid, per_facet)
+    u, v = rng.random((2, len(facets)))
     flip = u + v > 1
     u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
+    first = np.concatenate([[0], np.cumsum(per_facet)[:-1]])
+    u[first], v[first] = 1 / 3, 1 / 3                    # the centroid of every facet
     tri = model.triangles[facets]
     points = tri[:, 0] + u[:, None] * (tri[:, 1] - tri[:, 0]) + v[:, None] * (tri[:, 2] - tri[:, 0])
     center = points.mean(axis=0)
     radius = float(np.linalg.norm(points - center, axis=1).max())
-    return Surface(points, model.planes.normals[facets], facets, center, radius, cKDTree(points))
+    return Surface(points, model.planes.normals[facets], facets, center, radius, cKDTree(points),
+                   _scene(model))
+
+
+def _scene(model):
+    """Open3D ray-casting scene of the model's triangles (ids are facet indices)."""
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(model.vertices.astype(np.float32)),
+                        o3d.core.Tensor(model.faces.astype(np.uint32)))
+    return scene
 
 
 @dataclass
@@ -92,7 +118,8 @@ def contact_cost(model, surface, contacts, poses, position_noise, normal_noise_d
     poses : (P, 4, 4) T_world_object  ->  (P,) float: Σ_i d_i²/σ_x² + θ_i²/σ_n², with d_i the
     distance of contact i (moved into the object frame) to a facet and θ_i the angle between
     its measured outward normal and that facet's normal, for the facet with the lowest
-    d²/σ_x² + θ²/σ_n² among the facets of its NEAREST_FACETS nearest surface samples.
+    d²/σ_x² + θ²/σ_n² among the facet of the exact closest surface point and the facets of
+    the contact's NEAREST_FACETS nearest surface samples.
     """
     poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
     R, t = poses[:, :3, :3], poses[:, :3, 3]
@@ -102,8 +129,9 @@ def contact_cost(model, surface, contacts, poses, position_noise, normal_noise_d
     flat, nflat = p.reshape(-1, 3), nrm.reshape(-1, 3)
     k = NEAREST_FACETS
     _, idx = surface.tree.query(flat, k=k)
-    facets = surface.facets[idx.reshape(-1, k)]                     # (Pn, k) candidate facets
-    d = point_triangle_distance(np.repeat(flat, k, axis=0), model.triangles[facets.ravel()]).reshape(-1, k)
+    # candidates: the facet of the exact closest point, and the facets of the k nearest samples
+    facets = np.column_stack([surface.closest_facets(flat), surface.facets[idx.reshape(-1, k)]])  # (Pn, k+1)
+    d = point_triangle_distance(np.repeat(flat, k + 1, axis=0), model.triangles[facets.ravel()]).reshape(-1, k + 1)
     cos = np.einsum("ij,ikj->ik", nflat, model.planes.normals[facets])
     angle = np.arccos(np.clip(cos, -1.0, 1.0))
     # each contact takes the candidate facet that explains it best (near an edge the
@@ -136,7 +164,8 @@ def icp_target(surface, count=None):
 
     pts, nrm = surface.points, surface.normals
     if count is not None and count < len(pts):
-        pts, nrm = pts[:count], nrm[:count]  # samples are i.i.d.: a prefix is a smaller sample
+        keep = np.linspace(0, len(pts) - 1, count).round().astype(int)  # spread over all facets
+        pts, nrm = pts[keep], nrm[keep]
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.ascontiguousarray(pts)))
     cloud.normals = o3d.utility.Vector3dVector(np.ascontiguousarray(nrm))
     return cloud

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import time
 import warnings
+from itertools import combinations
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import lru_cache
@@ -29,8 +30,11 @@ METHODS = ("fast", "paper")
 SOLVERS = ("closed-form", "lm")
 #: Probability that a correct hypothesis passes the fit test (χ² quantile, 3 dof per contact).
 FIT_CONFIDENCE = 0.9973
-#: At most this many well-fitting hypotheses are compared with the best for ambiguity.
-MAX_AMBIGUITY_CHECKS = 64
+#: At most this many well-fitting hypotheses are grouped into pose classes.
+MAX_CLASS_HYPOTHESES = 256
+#: χ² charged per unassigned finger (max_outliers): the FIT_CONFIDENCE quantile of one
+#: contact's 3 dof, so dropping a finger never beats assigning it within noise.
+OUTLIER_PENALTY = 14.16
 #: Default position noise when none is given: this fraction of the object diameter.
 DEFAULT_POSITION_NOISE_FRAC = 0.0025
 STATUSES = ("ok", "no_hypothesis", "underdetermined", "ambiguous")
@@ -106,7 +110,8 @@ class Hypothesis:
     "fast", eq. (7) ℒ for "paper"); residuals : (n, 5) columns normal x/y/z (world),
     offset (point-to-plane; the eq. (7) offset for "paper"), lateral (outside the triangle);
     chi2 : whitened fit; underdetermined : bool; free_translation : (k, 3) world
-    directions; free_rotation : (3,) world axis or None.
+    directions; free_rotation : (3,) world axis or None; outliers : fingers left
+    unassigned (facet -1) under ``max_outliers``.
     """
 
     facets: np.ndarray
@@ -117,11 +122,13 @@ class Hypothesis:
     underdetermined: bool
     free_translation: np.ndarray
     free_rotation: np.ndarray | None
+    outliers: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=np.int64))
     covariance: np.ndarray | None = None
     probability: float | None = None
 
     def to_dict(self):
         out = {
+            "outliers": self.outliers.tolist(),
             "facets": self.facets.tolist(),
             "pose": self.pose.tolist(),
             "cost": float(self.cost),
@@ -153,11 +160,25 @@ class HypothesisArrays:
     fit: PoseFit
 
     def take(self, idx):
-        f = self.fit
-        fit = PoseFit(f.R[idx], f.t[idx], f.free_translation[idx], f.free_translation_mask[idx],
-                      f.free_rotation[idx], f.free_rotation_mask[idx])
         return HypothesisArrays(self.facets[idx], self.poses[idx], self.cost[idx], self.chi2[idx],
-                                self.residuals[idx], fit)
+                                self.residuals[idx], self.fit.take(idx))
+
+    def merged(self, other):
+        """Both sets of hypotheses in one ranking (by cost)."""
+        joined = HypothesisArrays(*(np.concatenate([a, b]) for a, b in zip(
+            (self.facets, self.poses, self.cost, self.chi2, self.residuals),
+            (other.facets, other.poses, other.cost, other.chi2, other.residuals))), self.fit.concat(other.fit))
+        return joined.take(np.argsort(joined.cost, kind="stable"))
+
+    def widened(self, fingers, n, penalty):
+        """Hypotheses over a subset of fingers as hypotheses over all n: the others get
+        facet -1 and NaN residuals, and ``penalty`` is added to cost and χ²."""
+        h = len(self.cost)
+        facets = -np.ones((h, n), dtype=self.facets.dtype)
+        facets[:, fingers] = self.facets
+        residuals = np.full((h, n, self.residuals.shape[2]), np.nan)
+        residuals[:, fingers] = self.residuals
+        return HypothesisArrays(facets, self.poses, self.cost + penalty, self.chi2 + penalty, residuals, self.fit)
 
 
 class HypothesisList(Sequence):
@@ -180,6 +201,7 @@ class HypothesisList(Sequence):
             chi2=float(a.chi2[i]), underdetermined=bool(f.underdetermined[i]),
             free_translation=f.free_translation[i][f.free_translation_mask[i]],
             free_rotation=f.free_rotation[i] if f.free_rotation_mask[i] else None,
+            outliers=np.flatnonzero(a.facets[i] < 0),
         )
 
 
@@ -199,6 +221,7 @@ class Result:
     tolerance: Tolerance
     hint: str = ""
     num_hypotheses: int = 0
+    classes: list = field(default_factory=list)
     extra: dict = field(default_factory=dict)
 
     @property
@@ -216,26 +239,52 @@ class Result:
             "num_hypotheses": self.num_hypotheses,
             "tolerance": {"distance": self.tolerance.distance, "angle_deg": float(np.degrees(self.tolerance.angle))},
             "timing": self.timing,
+            "classes": [c.to_dict() for c in self.classes],
             "hypotheses": [h.to_dict() for h in self.hypotheses],
             **self.extra,
         }
 
 
 def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prior=None,
-             method="fast", solver=None, top=None, model_error=0.0):
+             method="fast", solver=None, top=None, model_error=0.0, max_outliers=0):
     """Find every admissible finger-to-facet assignment and the object pose behind each.
 
     model : ObjectModel; contacts : Contacts (world frame); position_noise : per-axis σ of
     the contact points in length units (default 0.25 % of the object diameter);
     normal_noise_deg : per-axis σ of the normals; prior : PosePrior or None;
     method : "fast" | "paper"; solver : "closed-form" | "lm" (default: closed-form for
-    "fast", lm for "paper"); top : keep only the best K hypotheses.
+    "fast", lm for "paper"); top : keep only the best K hypotheses; model_error : extra
+    length tolerance for a model that differs from the object (a scan, say);
+    max_outliers : up to this many fingers may be left unassigned (facet -1), their
+    contacts excluded from the pose, at a cost of OUTLIER_PENALTY each ("fast" only).
     """
     method, solver = _check_options(method, solver, top, contacts, prior)
+    max_outliers = _check_outliers(max_outliers, method, contacts.n)
     if position_noise is None:
         position_noise = DEFAULT_POSITION_NOISE_FRAC * model.diameter
     tolerance = Tolerance.from_noise(position_noise, normal_noise_deg, model_error)
     _warn_units(model, contacts, tolerance)
+    start = time.perf_counter()
+    arrays, timing = _search(model, contacts, tolerance, prior, method, solver)
+    for dropped in _outlier_sets(contacts.n, max_outliers):
+        keep = np.setdiff1d(np.arange(contacts.n), dropped)
+        sub, sub_timing = _search(model, contacts.permuted(keep), tolerance, prior, method, solver)
+        arrays = arrays.merged(sub.widened(keep, contacts.n, len(dropped) * OUTLIER_PENALTY))
+        timing = {k: timing[k] + sub_timing[k] for k in timing}
+    classes_start = time.perf_counter()
+    classes = pose_classes(model, arrays, contacts.n)
+    status, hint = _status(model, contacts, arrays, classes, tolerance)
+    num = len(arrays.cost)
+    if top is not None:
+        arrays = arrays.take(slice(0, top))
+    timing["rank"] += time.perf_counter() - classes_start
+    timing["total"] = time.perf_counter() - start
+    return Result(status, HypothesisList(arrays), timing, method, solver, tolerance, hint,
+                  num_hypotheses=num, classes=classes)
+
+
+def _search(model, contacts, tolerance, prior, method, solver):
+    """S_ij -> tree -> poses -> ranked HypothesisArrays, with seconds per stage."""
     clock = [time.perf_counter()]
     bounds = "exact" if method == "fast" else "paper"
     conditions = pair_conditions(contacts)
@@ -254,14 +303,23 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
     fit, cost_paper = _fit(model, contacts, facets, tolerance, prior, solver, method)
     clock.append(time.perf_counter())
     arrays = _rank(model, contacts, facets, fit, cost_paper, tolerance, method)
-    status, hint = _status(model, contacts, arrays, tolerance)
-    if top is not None:
-        arrays = arrays.take(slice(0, top))
     clock.append(time.perf_counter())
-    timing = dict(zip(("pairs", "tree", "pose", "rank"), np.diff(clock).tolist()))
-    timing["total"] = clock[-1] - clock[0]
-    return Result(status, HypothesisList(arrays), timing, method, solver, tolerance, hint,
-                  num_hypotheses=len(facets))
+    return arrays, dict(zip(("pairs", "tree", "pose", "rank"), np.diff(clock).tolist()))
+
+
+def _check_outliers(max_outliers, method, n):
+    if not (isinstance(max_outliers, (int, np.integer)) and 0 <= max_outliers):
+        raise ContactPoseError(f"max_outliers must be a non-negative integer, got {max_outliers!r}")
+    if max_outliers and method != "fast":
+        raise ContactPoseError("max_outliers needs method='fast' (the paper assigns every finger)")
+    if max_outliers and n - max_outliers < 3:
+        raise ContactPoseError(f"max_outliers={max_outliers} with {n} contacts leaves fewer than 3 to fit a pose")
+    return int(max_outliers)
+
+
+def _outlier_sets(n, max_outliers):
+    """Every set of 1..max_outliers fingers to leave unassigned."""
+    return [np.array(c) for q in range(1, max_outliers + 1) for c in combinations(range(n), q)]
 
 
 def _check_options(method, solver, top, contacts, prior):
@@ -341,21 +399,69 @@ def fit_threshold(n):
     return float(chi2.ppf(FIT_CONFIDENCE, 3 * n))
 
 
-def _status(model, contacts, arrays, tolerance):
-    """Status and hint from the ranked hypotheses."""
+@dataclass
+class PoseClass:
+    """Hypotheses that place the object's surface the same way (ADD-S below
+    SAME_CLASS_ADDS_FRAC of the diameter): symmetric twins count as one placement.
+
+    members : hypothesis ranks (in the full ranking); best : rank of its best member;
+    pose : (4, 4) its best pose; chi2 : its best χ²; probability : share of the
+    likelihood exp(-χ²/2) summed over members, normalised over classes.
+    """
+
+    members: np.ndarray
+    best: int
+    pose: np.ndarray
+    chi2: float
+    probability: float
+
+    def to_dict(self):
+        return {"members": self.members.tolist(), "best": int(self.best), "pose": self.pose.tolist(),
+                "chi2": float(self.chi2), "probability": float(self.probability)}
+
+
+def pose_classes(model, arrays, n):
+    """Group the hypotheses that fit within noise into pose classes, best class first.
+
+    A hypothesis joins the first class whose best pose is within ADD-S of it, else opens one.
+    """
+    fits = np.flatnonzero(arrays.chi2 <= fit_threshold(n))[:MAX_CLASS_HYPOTHESES]
+    limit = SAME_CLASS_ADDS_FRAC * model.diameter
+    reps, members = [], []
+    for i in fits:
+        for c, r in enumerate(reps):
+            if _same_placement(model, arrays.poses[i], arrays.poses[r], limit):
+                members[c].append(i)
+                break
+        else:
+            reps.append(i)
+            members.append([i])
+    if not reps:
+        return []
+    chi2 = arrays.chi2
+    weight = np.array([np.sum(np.exp(-0.5 * (chi2[m] - chi2[fits[0]]))) for m in members])
+    prob = weight / weight.sum()
+    return [PoseClass(np.array(m), int(r), arrays.poses[r], float(chi2[r]), float(p))
+            for m, r, p in zip(members, reps, prob)]
+
+
+def _same_placement(model, T_a, T_b, limit):
+    if displacement_bound(T_a, T_b, model.surface_radius) <= limit:
+        return True  # ADD-S cannot exceed the largest displacement
+    return adds(T_a, T_b, model.surface_points, model.surface_tree) <= limit
+
+
+def _status(model, contacts, arrays, classes, tolerance):
+    """Status and hint from the ranked hypotheses and their pose classes."""
     if len(arrays.cost) == 0:
         return "no_hypothesis", _no_hypothesis_hint(model, contacts, tolerance)
     if arrays.fit.underdetermined[0]:
         return "underdetermined", "the hypothesised facet normals leave pose directions free; see free_translation / free_rotation"
-    fits = np.flatnonzero(arrays.chi2 <= fit_threshold(contacts.n))[:MAX_AMBIGUITY_CHECKS]
-    best = arrays.poses[0]
-    limit = SAME_CLASS_ADDS_FRAC * model.diameter
-    radius = model.surface_radius
-    for i in fits[fits > 0]:
-        if displacement_bound(arrays.poses[i], best, radius) <= limit:
-            continue  # the same placement: ADD-S cannot exceed the displacement
-        if adds(arrays.poses[i], best, model.surface_points, model.surface_tree) > limit:
-            return "ambiguous", f"hypothesis {i} is a distinct pose that also fits within noise; add a prior or a touch"
+    if len(classes) > 1:
+        return "ambiguous", (f"{len(classes)} distinct placements fit within noise (probabilities "
+                             f"{', '.join(f'{c.probability:.2f}' for c in classes[:4])}); add a prior or a touch")
+    if not classes:
+        return "ok", f"the best hypothesis does not fit within noise (chi2 {arrays.chi2[0]:.3g} > {fit_threshold(contacts.n):.3g})"
     return "ok", ""
 
 

@@ -15,7 +15,7 @@ reference translation t0 along them.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 
@@ -36,6 +36,14 @@ class PoseFit:
     free_translation_mask: np.ndarray
     free_rotation: np.ndarray
     free_rotation_mask: np.ndarray
+
+    def take(self, idx):
+        """The fits of the hypotheses ``idx``."""
+        return PoseFit(*(getattr(self, f.name)[idx] for f in fields(self)))
+
+    def concat(self, other):
+        """Both sets of fits, self's first."""
+        return PoseFit(*(np.concatenate([getattr(self, f.name), getattr(other, f.name)]) for f in fields(self)))
 
     @property
     def underdetermined(self):
