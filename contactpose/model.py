@@ -409,6 +409,29 @@ def _keep_facet_pairs(facet_pairs, patches, pair_count):
     return facet_pairs
 
 
+def _mmap_npz(path):
+    """Map each stored (uncompressed) .npy member of a zip in place, read-only."""
+    import zipfile
+
+    arrays = {}
+    with zipfile.ZipFile(path) as zf, open(path, "rb") as fh:
+        for info in zf.infolist():
+            if info.compress_type != zipfile.ZIP_STORED or not info.filename.endswith(".npy"):
+                raise ValueError(f"member {info.filename} is not a stored .npy")
+            fh.seek(info.header_offset)
+            local = fh.read(30)
+            name_len, extra_len = int.from_bytes(local[26:28], "little"), int.from_bytes(local[28:30], "little")
+            fh.seek(info.header_offset + 30 + name_len + extra_len)
+            version = np.lib.format.read_magic(fh)
+            read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+            shape, fortran, dtype = read_header(fh)
+            if dtype.hasobject:
+                raise ValueError("object arrays are not allowed")
+            arrays[info.filename[:-4]] = np.memmap(fh.name, dtype=dtype, mode="r", offset=fh.tell(), shape=shape,
+                                                   order="F" if fortran else "C") if np.prod(shape) else np.empty(shape, dtype)
+    return arrays
+
+
 def _check_span(max_span):
     if max_span is None:
         return None
@@ -456,8 +479,18 @@ def _prefixed(data, prefix):
     return {k[len(prefix):]: v for k, v in data.items() if k.startswith(prefix)}
 
 
+#: Model files larger than this are memory-mapped instead of read into memory.
+MMAP_MIN_BYTES = 256 * 2**20
+
+
 def _read_npz(path):
-    """Load every array of an .npz into memory, turning every failure into ModelFileError."""
+    """Every array of an .npz, turning every failure into ModelFileError. Large files
+    are memory-mapped (their members are stored uncompressed by ``save``)."""
+    if os.path.isfile(path) and os.path.getsize(path) >= MMAP_MIN_BYTES:
+        try:
+            return _mmap_npz(path)
+        except (ValueError, OSError, KeyError):
+            pass  # not a plain stored archive: fall back to reading it
     if not os.path.isfile(path):
         raise ModelFileError(f"model file {path!r} does not exist")
     try:
