@@ -13,6 +13,7 @@ import os
 import platform
 import subprocess
 import sys
+import tempfile
 import time
 
 import numpy as np
@@ -43,17 +44,29 @@ def machine_description():
             "python": platform.python_version(), "numpy": np.__version__}
 
 
-def build_in_subprocess(name, repeats):
-    """Median build seconds over ``repeats`` and the peak RSS of the process, in MiB."""
+#: Build repeats: the median of several for small models, one for large ones.
+SMALL_MODEL_FACETS = 2000
+
+
+def build_in_subprocess(name, mesh_path):
+    """Build seconds (median over repeats) and peak RSS of a fresh process, in MiB, with the
+    RSS before building (imports and mesh loaded) as the baseline. Warm-up builds first
+    load the numba kernels; for large models the one timed build is the first."""
     code = (
-        "import resource, time, json, warnings, numpy as np\n"
+        "import resource, time, json, warnings, numpy as np, trimesh\n"
         "warnings.simplefilter('ignore')\n"
         "from contactpose import objects\nfrom contactpose.model import ObjectModel\n"
-        f"mesh = objects.load({name!r}); ObjectModel.from_mesh(mesh)\n"
+        f"mesh = trimesh.load({mesh_path!r}, force='mesh', process=False)\n"
+        "ObjectModel.from_mesh(objects.load('banana'))\n"
+        "base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024\n"
+        f"repeats = 7 if len(mesh.faces) < {SMALL_MODEL_FACETS} else 1\n"
         "ts = []\n"
-        f"for _ in range({repeats}):\n"
-        "    t = time.perf_counter(); ObjectModel.from_mesh(mesh); ts.append(time.perf_counter() - t)\n"
-        "print(json.dumps({'median': float(np.median(ts)), 'peak_mib': resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))\n"
+        "for _ in range(repeats):\n"
+        "    t = time.perf_counter(); m = ObjectModel.from_mesh(mesh); ts.append(time.perf_counter() - t)\n"
+        "print(json.dumps({'median': float(np.median(ts)), 'repeats': repeats, 'baseline_mib': base,\n"
+        "                  'peak_mib': resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,\n"
+        "                  'seconds': m.build_seconds, 'pairs': m.num_pairs, 'facet_table': m.table is not None,\n"
+        "                  'patches': None if m.patches is None else m.patches.count}))\n"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     return json.loads(out.stdout.strip().splitlines()[-1])
@@ -94,45 +107,61 @@ def summarize(rows):
     return out
 
 
-def bench_model(name, runs, seed, cap):
-    build = build_in_subprocess(name, repeats=7)
-    model = ObjectModel.from_mesh(objects.load(name))
+def bench_model(name, runs, seed, cap, workdir):
+    mesh = objects.load(name)
+    path = os.path.join(workdir, f"{name}.ply")
+    mesh.export(path)
+    build = build_in_subprocess(name, path)
+    model = ObjectModel.from_mesh(mesh)
     grasps = grasps_for(model, name, runs, np.random.default_rng(seed))
     fast = summarize(time_method(model, grasps, "fast", cap))
+    out = {"model": name, "facets": model.num_facets, "ordered_pairs": model.num_pairs,
+           "patches": None if model.patches is None else model.patches.count,
+           "facet_table": model.table is not None,
+           "build_median_ms": build["median"] * 1000, "build_repeats": build["repeats"],
+           "build_stage_seconds": build["seconds"], "build_peak_rss_mib": build["peak_mib"],
+           "build_baseline_rss_mib": build["baseline_mib"], "fast": fast}
+    if model.table is None:
+        out.update(paper=None, paper_skipped="no facet table: the paper's method needs facet_pairs=True "
+                   f"({model.num_facets} facets: ~{model.num_facets ** 2 * 20 / 2**30:.1f} GiB)")
+        return out
     paper_rows = time_method(model, grasps, "paper", cap)
     paper = summarize(paper_rows)
-    complete = len(paper_rows) == len(grasps)
-    ratio = paper["total"]["median_ms"] / fast["total"]["median_ms"]
-    return {"model": name, "facets": model.num_facets, "ordered_pairs": model.num_pairs,
-            "build_median_ms": build["median"] * 1000, "build_peak_rss_mib": build["peak_mib"],
-            "fast": fast, "paper": paper, "paper_complete": complete, "ratio_paper_over_fast": ratio}
+    out.update(paper=paper, paper_complete=len(paper_rows) == len(grasps),
+               ratio_paper_over_fast=paper["total"]["median_ms"] / fast["total"]["median_ms"])
+    return out
 
 
 def format_table(results):
-    lines = [f"{'model':8s} {'m':>6s} {'build ms':>9s} {'peak MiB':>9s} | {'method':6s} {'S_ij':>7s} {'tree':>7s} "
+    lines = [f"{'model':13s} {'m':>6s} {'build ms':>9s} {'peak MiB':>9s} | {'method':6s} {'S_ij':>7s} {'tree':>7s} "
              f"{'pose':>8s} {'rank':>7s} {'total med':>9s} {'p95':>8s} {'max':>8s} {'H med':>6s} {'recall':>6s}"]
     for r in results:
         for method in ("fast", "paper"):
             s = r[method]
+            if s is None:
+                lines.append(f"{r['model']:13s} {'':6s} {'':9s} {'':9s} | {method:6s} skipped: {r['paper_skipped']}")
+                continue
             lines.append(
-                f"{r['model']:8s} {r['facets']:6d} {r['build_median_ms']:9.2f} {r['build_peak_rss_mib']:9.0f} | {method:6s} "
+                f"{r['model']:13s} {r['facets']:6d} {r['build_median_ms']:9.2f} {r['build_peak_rss_mib']:9.0f} | {method:6s} "
                 + " ".join(f"{s[k]['median_ms']:7.3f}" for k in ("pairs", "tree"))
                 + f" {s['pose']['median_ms']:8.3f} {s['rank']['median_ms']:7.3f} {s['total']['median_ms']:9.3f} "
                 f"{s['total']['p95_ms']:8.2f} {s['total']['max_ms']:8.2f} {s['hypotheses']['median']:6.0f} {s['recall']:6.2f}"
                 + ("" if method == "fast" or r["paper_complete"] else f"  (stopped after {s['runs']} runs: over the cap)"))
-        lines.append(f"{'':8s} paper/fast median ratio: {r['ratio_paper_over_fast']:.1f}x")
+        if r["paper"] is not None:
+            lines.append(f"{'':13s} paper/fast median ratio: {r['ratio_paper_over_fast']:.1f}x")
     return "\n".join(lines)
 
 
 def run_bench(args):
-    names = args.models or ["banana", "rock1k"]
+    names = args.models or ["banana", "rock1k", "espresso6767"]
     unknown = [n for n in names if n not in objects.names()]
     if unknown:
         from contactpose.errors import ContactPoseError
 
         raise ContactPoseError(f"unknown model {unknown[0]!r}; choose from {objects.names()}")
     start = time.perf_counter()
-    results = [bench_model(n, args.runs, args.seed, args.paper_cap) for n in names]
+    with tempfile.TemporaryDirectory() as workdir:
+        results = [bench_model(n, args.runs, args.seed, args.paper_cap, workdir) for n in names]
     report = {"machine": machine_description(), "runs": args.runs, "seed": args.seed,
               "noise": {"position": POSITION_NOISE, "normal_deg": NORMAL_NOISE_DEG}, "models": results,
               "seconds": time.perf_counter() - start}

@@ -116,20 +116,27 @@ def mesh_diameter(vertices):
     from scipy.spatial import ConvexHull, QhullError
 
     pts = vertices
-    try:
-        pts = vertices[ConvexHull(vertices).vertices]
-    except (QhullError, ValueError):
-        pass  # flat or tiny vertex sets: fall back to all vertices
+    if len(vertices) > 500:
+        try:
+            pts = vertices[ConvexHull(vertices).vertices]
+        except (QhullError, ValueError):
+            pass  # flat vertex sets: fall back to all vertices
     if len(pts) > 4000:
         pts = pts[:: len(pts) // 4000 + 1]
     diff = pts[:, None, :] - pts[None, :, :]
     return float(np.sqrt(np.max(np.einsum("ijk,ijk->ij", diff, diff))))
 
 
-def winding_report(vertices, faces):
-    """Check face winding. Returns a message if normals look inward or inconsistent, else None."""
+def merged_mesh(vertices, faces):
+    """A trimesh copy with coincident vertices merged (face order kept), for topology."""
     merged = trimesh.Trimesh(vertices, faces, process=False)
     merged.merge_vertices()
+    return merged
+
+
+def winding_report(merged):
+    """Check face winding of a vertex-merged mesh. A message if normals look inward or
+    inconsistent, else None."""
     if not merged.is_winding_consistent:
         return "face winding is inconsistent between neighbouring facets"
     if merged.is_watertight and merged.volume < 0:
@@ -210,12 +217,13 @@ class ObjectModel:
         if not diameter > 0:
             raise MeshError("mesh has zero extent (all vertices coincide)")
         planes = facet_planes(triangles, diameter)
-        _report_facets(planes, vertices, faces)
+        merged = merged_mesh(vertices, faces)
+        _report_facets(planes, merged)
         max_span = _check_span(max_span)
         pair_count = _pair_count(triangles, planes, max_span)
         check_memory(pair_count if facet_pairs is not False else 0, len(faces), max_span)
         t_planes = time.perf_counter()
-        patches = _find_patches(vertices, faces, planes, bounds, patch_tol_deg)
+        patches = _find_patches(merged, planes, bounds, patch_tol_deg)
         keep = _keep_facet_pairs(facet_pairs, patches, pair_count)
         reducer = PatchReducer(patches) if patches is not None and patches.worthwhile else None
         features = pair_features(triangles, planes, bounds=bounds, progress=progress, max_span=max_span,
@@ -388,13 +396,14 @@ class ObjectModel:
         }
 
 
-def _find_patches(vertices, faces, planes, bounds, tol_deg):
-    """Patches for the default method, or None (no patches, or a paper-bounds model)."""
+def _find_patches(merged, planes, bounds, tol_deg):
+    """Patches for the default method, or None (no patches, or a paper-bounds model).
+    merged : the vertex-merged mesh (for edge adjacency)."""
     if tol_deg is None or bounds != "exact":
         return None
     if not (np.isfinite(tol_deg) and 0 <= tol_deg < 90):
         raise MeshError(f"patch_tol_deg must be an angle in [0, 90) degrees or None, got {tol_deg!r}")
-    return find_patches(vertices, faces, planes, tol_deg)
+    return find_patches(merged, planes, tol_deg)
 
 
 def _keep_facet_pairs(facet_pairs, patches, pair_count):
@@ -503,7 +512,7 @@ def _read_npz(path):
                              "(truncated, corrupt or not a .npz model)") from None
 
 
-def _report_facets(planes, vertices, faces):
+def _report_facets(planes, merged):
     """Log and warn about degenerate facets and suspicious winding."""
     bad = np.flatnonzero(~planes.valid)
     if len(bad) == len(planes.valid):
@@ -514,6 +523,6 @@ def _report_facets(planes, vertices, faces):
             f"{len(bad)} degenerate facets excluded from pairs (indices kept): {shown}",
             stacklevel=3,
         )
-    problem = winding_report(vertices, faces)
+    problem = winding_report(merged)
     if problem:
         warnings.warn(f"{problem}; contact normals will not match (try `--fix-normals`)", stacklevel=3)

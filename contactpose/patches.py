@@ -17,7 +17,6 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
-import trimesh
 
 from contactpose.features import PairFeatures
 from contactpose.geometry import point_triangle_dist2
@@ -72,27 +71,21 @@ class Patches:
                    float(a["tol_deg"]))
 
 
-def face_adjacency(vertices, faces):
-    """(e, 2) int pairs of facets sharing an edge (vertices merged by position)."""
-    merged = trimesh.Trimesh(vertices, faces, process=False)
-    merged.merge_vertices()
-    return np.asarray(merged.face_adjacency, dtype=np.int64).reshape(-1, 2)
-
-
-def find_patches(vertices, faces, planes, tol_deg):
+def find_patches(merged, planes, tol_deg):
     """Grow patches over edge adjacency in facet order (deterministic).
 
-    vertices (V, 3), faces (m, 3); planes : FacetPlanes; tol_deg >= 0.
+    merged : trimesh.Trimesh with coincident vertices merged (face order as the model's);
+    planes : FacetPlanes; tol_deg >= 0.
     """
-    adjacency = face_adjacency(vertices, faces)
-    m = len(faces)
+    adjacency = np.asarray(merged.face_adjacency, dtype=np.int64).reshape(-1, 2)
+    m = len(merged.faces)
     nbr_ptr = np.zeros(m + 1, dtype=np.int64)
     both = np.concatenate([adjacency, adjacency[:, ::-1]])
     both = both[np.lexsort((both[:, 1], both[:, 0]))]
     np.cumsum(np.bincount(both[:, 0], minlength=m), out=nbr_ptr[1:])
     cos_tol = np.cos(max(np.radians(tol_deg), COPLANAR_ANGLE))
     labels = _grow(nbr_ptr, both[:, 1], planes.normals, planes.valid, cos_tol)
-    return _summarise(labels, planes, vertices[faces].mean(axis=1), tol_deg)
+    return _summarise(labels, planes, merged.triangles.mean(axis=1), tol_deg)
 
 
 @numba.njit(cache=True)
