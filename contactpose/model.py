@@ -221,11 +221,12 @@ class ObjectModel:
         _report_facets(planes, merged)
         max_span = _check_span(max_span)
         pair_count = _pair_count(triangles, planes, max_span)
-        check_memory(pair_count if facet_pairs is not False else 0, len(faces), max_span)
-        t_planes = time.perf_counter()
         patches = _find_patches(merged, planes, bounds, patch_tol_deg)
+        reduce = patches is not None and patches.worthwhile
         keep = _keep_facet_pairs(facet_pairs, patches, pair_count)
-        reducer = PatchReducer(patches) if patches is not None and patches.worthwhile else None
+        check_memory(pair_count, len(faces), max_span, keep, patches.count if reduce else 0)
+        t_planes = time.perf_counter()
+        reducer = PatchReducer(patches) if reduce else None
         features = pair_features(triangles, planes, bounds=bounds, progress=progress, max_span=max_span,
                                  keep=keep, sink=reducer)
         t_features = time.perf_counter()

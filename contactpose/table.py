@@ -18,7 +18,7 @@ import numpy as np
 
 from contactpose import tol
 from contactpose.errors import ContactPoseError, ResourceError
-from contactpose.features import PairFeatures
+from contactpose.features import CHUNK_PAIRS, PairFeatures
 
 #: Default bins (p_dmax, p_dmin, p_alpha). α bins of 180°/64 ≈ 2.8° sit just below the
 #: pair angle tolerance at 1° normal noise (4.2°), so an angle query touches 2–4 α bins;
@@ -45,16 +45,33 @@ def check_bins(bins):
     return values
 
 
-def estimate_bytes(num_pairs):
-    """Peak memory of building a pair table of num_pairs unordered pairs, in bytes."""
-    return num_pairs * (STORED_BYTES_PER_PAIR + SORT_BYTES_PER_PAIR)
+#: Temporaries per pair while a chunk of pair features is computed (int64 indices,
+#: float64 distances, cosines and direction intervals before rounding to float32); measured.
+CHUNK_TEMP_BYTES_PER_PAIR = 90
+#: Patch-pair accumulators: 8 float64 per patch pair.
+PATCH_ACC_BYTES_PER_PAIR = 64
 
 
-def check_memory(num_pairs, num_facets, max_span=None):
+def estimate_bytes(num_pairs, keep_facets=True, num_patches=0):
+    """Peak memory of building a model's pair tables, in bytes.
+
+    The peak is the larger of the chunk phase (stored pairs so far plus one chunk's
+    temporaries) and the sort into K3 (stored pairs plus key and permutation), plus the
+    patch-pair accumulators. num_pairs : unordered facet pairs; keep_facets : the facet
+    table is kept (else only a chunk lives at a time); num_patches : patches reduced into.
+    """
+    stored = num_pairs * STORED_BYTES_PER_PAIR if keep_facets else 0
+    chunk = min(num_pairs, CHUNK_PAIRS) * (CHUNK_TEMP_BYTES_PER_PAIR + (0 if keep_facets else STORED_BYTES_PER_PAIR))
+    sort = num_pairs * SORT_BYTES_PER_PAIR if keep_facets else 0
+    patches = num_patches * (num_patches + 1) // 2 * PATCH_ACC_BYTES_PER_PAIR
+    return max(stored + chunk, stored + sort) + patches
+
+
+def check_memory(num_pairs, num_facets, max_span=None, keep_facets=True, num_patches=0):
     """Refuse, before building, a table that will not fit in the available memory."""
     import psutil
 
-    need = estimate_bytes(num_pairs)
+    need = estimate_bytes(num_pairs, keep_facets, num_patches)
     available = psutil.virtual_memory().available
     if need > 0.8 * available:
         advice = "a smaller max_span" if max_span is not None else "max_span (the hand's span, `--max-span L`)"

@@ -59,8 +59,19 @@ def _two_way_distance(mesh_a, mesh_b, n=2000, dense=200000):
     return max(cKDTree(db).query(pa)[0].max(), cKDTree(da).query(pb)[0].max())
 
 
+#: Built from the espresso generator with Open3D decimation (slow: tested in test_scan.py's slow set).
+GENERATED = {"espresso6767", "espresso83846"}
+
+
 def test_names_are_all_listed():
-    assert set(objects.names()) == set(FACET_COUNTS)
+    assert set(objects.names()) == set(FACET_COUNTS) | GENERATED
+
+
+@pytest.mark.slow
+def test_espresso6767_facet_count_and_size():
+    mesh = objects.load("espresso6767")
+    assert abs(len(mesh.faces) - 6767) <= 0.01 * 6767
+    assert abs(mesh.extents.max() - 0.35) < 0.005
 
 
 @pytest.mark.parametrize("name", sorted(FACET_COUNTS))
