@@ -31,9 +31,25 @@ def _model_or_mesh(path, bins=None, bounds=None, fix_normals=False, max_span=Non
 
 
 def cmd_build_model(args):
+    scanned = None
+    if getattr(args, "scan_prefix", None) is not None:  # scan options registered: clouds are accepted
+        from contactpose import scan
+
+        scanned = scan.scan_if_cloud(args.mesh, args)  # None unless MESH is a point cloud file
+    if scanned is not None:
+        print(scanned.report.format())
+        if args.save_mesh:
+            scan.write_mesh(scanned.mesh, args.save_mesh)
+            print(f"mesh: {args.save_mesh}")
     start = time.perf_counter()
-    model = _model_or_mesh(args.mesh, bins=args.bins, bounds=args.bounds, fix_normals=args.fix_normals,
-                           max_span=args.max_span)
+    if scanned is None:
+        model = _model_or_mesh(args.mesh, bins=args.bins, bounds=args.bounds, fix_normals=args.fix_normals,
+                               max_span=args.max_span)
+    else:
+        from contactpose.model import ObjectModel
+
+        kwargs = {k: v for k, v in (("bins", args.bins), ("bounds", args.bounds)) if v is not None}
+        model = ObjectModel.from_mesh(scanned.mesh, fix_normals=args.fix_normals, max_span=args.max_span, **kwargs)
     seconds = time.perf_counter() - start
     out = args.output or os.path.splitext(os.path.basename(args.mesh))[0] + ".npz"
     model.save(out)
@@ -55,7 +71,7 @@ def cmd_localize(args):
     prior = io.read_prior(args.prior) if args.prior else None
     result = localize(model, contacts, position_noise=args.position_noise,
                       normal_noise_deg=args.normal_noise_deg, prior=prior, method=args.method,
-                      solver=args.solver, top=args.top)
+                      solver=args.solver, top=args.top, robust=args.robust, max_outliers=args.max_outliers)
     data = result.to_dict()
     if args.output:
         io.write_json(args.output, data)
@@ -90,14 +106,22 @@ def build_parser():
     parser.add_argument("--debug", action="store_true", help="show tracebacks and debug logs")
     sub = parser.add_subparsers(dest="command", required=True)
 
-    p = sub.add_parser("build-model", help="build a contact model (.npz) from a mesh")
-    p.add_argument("mesh", help="mesh file (STL, OBJ, PLY, OFF, GLB) or a built-in object name")
+    p = sub.add_parser("build-model", help="build a contact model (.npz) from a mesh or a point cloud")
+    p.add_argument("mesh", help="mesh file (STL, OBJ, PLY, OFF, GLB), point cloud file (PLY without faces, "
+                                "PCD, XYZ, NPY; meshed first with the scan options) or a built-in object name")
     p.add_argument("-o", "--output", help="output .npz (default: MESH name with .npz)")
     p.add_argument("--bins", nargs=3, type=int, metavar="P", help="bins p_dmax p_dmin p_alpha")
     p.add_argument("--bounds", choices=("exact", "paper"), default="exact")
     p.add_argument("--fix-normals", action="store_true", help="re-wind faces consistently outward (trimesh repair)")
     p.add_argument("--max-span", type=float, help="hand span L: store only facet pairs closer than L (mesh units)")
     p.set_defaults(func=cmd_build_model)
+    try:  # Open3D present: a point cloud is meshed first (contactpose scan), with the same options
+        from contactpose import scan
+
+        p.add_argument("--save-mesh", metavar="MESH", help="point cloud input: also write the reconstructed mesh")
+        scan.add_scan_options(p, prefix="scan-")
+    except ImportError as exc:
+        log.debug("build-model takes meshes only: %s", exc)
 
     p = sub.add_parser("localize", help="find contact facets and the object pose")
     p.add_argument("model", help="model .npz, mesh file or built-in object name")
@@ -106,7 +130,10 @@ def build_parser():
     p.add_argument("--position-noise", type=float, help="σ of contact points (length units)")
     p.add_argument("--normal-noise-deg", type=float, default=1.0, help="σ of normals (degrees)")
     p.add_argument("--method", choices=("fast", "paper"), default="fast")
-    p.add_argument("--solver", choices=("closed-form", "lm"))
+    p.add_argument("--solver", choices=("closed-form", "lm", "factor-graph"))
+    p.add_argument("--robust", choices=("huber", "cauchy", "none"), default="huber",
+                   help="factor graph's robust kernel (with --solver factor-graph)")
+    p.add_argument("--max-outliers", type=int, default=0, help="fingers that may be left unassigned")
     p.add_argument("--top", type=int, help="keep the best K hypotheses")
     p.add_argument("--fix-normals", action="store_true", help="when given a mesh: re-wind faces outward first")
     p.add_argument("-o", "--output", help="write the result as JSON")
@@ -120,7 +147,7 @@ def build_parser():
     p = sub.add_parser("bench", help="online and offline timings, fast vs paper")
     p.add_argument("--json", help="also write the table as JSON")
     p.add_argument("--runs", type=int, default=25)
-    p.add_argument("--models", nargs="*", help="built-in object names (default: banana rock1k)")
+    p.add_argument("--models", nargs="*", help="built-in object names (default: banana rock1k espresso6767)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--paper-cap", type=float, default=20.0, help="stop the paper's method past this many seconds per grasp")
     p.add_argument("--out", default="results/bench")

@@ -27,9 +27,15 @@ from contactpose.solvers.closed_form import PoseFit, fit_poses
 from contactpose.solvers.lm import fit_lm_all
 
 METHODS = ("fast", "paper")
-SOLVERS = ("closed-form", "lm")
+SOLVERS = ("closed-form", "lm", "factor-graph")
+ROBUST = ("huber", "cauchy", "none")
+#: solver="factor-graph" refines this many of the best closed-form hypotheses (0: all).
+DEFAULT_REFINE = 20
 #: Probability that a correct hypothesis passes the fit test (χ² quantile, 3 dof per contact).
 FIT_CONFIDENCE = 0.9973
+#: With evidence-based probabilities (factor graph), "ambiguous" needs the classes other
+#: than the best to hold more than this probability together.
+AMBIGUOUS_PROBABILITY = 0.05
 #: At most this many well-fitting hypotheses are grouped into pose classes.
 MAX_CLASS_HYPOTHESES = 256
 #: χ² charged per unassigned finger (max_outliers): the FIT_CONFIDENCE quantile of one
@@ -158,10 +164,14 @@ class HypothesisArrays:
     chi2: np.ndarray
     residuals: np.ndarray
     fit: PoseFit
+    covariance: np.ndarray | None = None
+    probability: np.ndarray | None = None
 
     def take(self, idx):
+        pick = (lambda a: None if a is None else a[idx])
         return HypothesisArrays(self.facets[idx], self.poses[idx], self.cost[idx], self.chi2[idx],
-                                self.residuals[idx], self.fit.take(idx))
+                                self.residuals[idx], self.fit.take(idx), pick(self.covariance),
+                                pick(self.probability))
 
     def merged(self, other):
         """Both sets of hypotheses in one ranking (by cost)."""
@@ -202,6 +212,8 @@ class HypothesisList(Sequence):
             free_translation=f.free_translation[i][f.free_translation_mask[i]],
             free_rotation=f.free_rotation[i] if f.free_rotation_mask[i] else None,
             outliers=np.flatnonzero(a.facets[i] < 0),
+            covariance=None if a.covariance is None else a.covariance[i],
+            probability=None if a.probability is None else float(a.probability[i]),
         )
 
 
@@ -246,7 +258,8 @@ class Result:
 
 
 def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prior=None,
-             method="fast", solver=None, top=None, model_error=0.0, max_outliers=0):
+             method="fast", solver=None, top=None, model_error=0.0, max_outliers=0, robust="huber",
+             refine=DEFAULT_REFINE):
     """Find every admissible finger-to-facet assignment and the object pose behind each.
 
     model : ObjectModel; contacts : Contacts (world frame); position_noise : per-axis σ of
@@ -256,21 +269,32 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
     "fast", lm for "paper"); top : keep only the best K hypotheses; model_error : extra
     length tolerance for a model that differs from the object (a scan, say);
     max_outliers : up to this many fingers may be left unassigned (facet -1), their
-    contacts excluded from the pose, at a cost of OUTLIER_PENALTY each ("fast" only).
+    contacts excluded from the pose, at a cost of OUTLIER_PENALTY each ("fast" only);
+    robust : "huber" | "cauchy" | "none", the factor graph's kernel; refine : how many of the
+    best closed-form hypotheses the factor graph refines (0: all). With
+    solver="factor-graph" hypotheses carry .covariance and .probability and are ranked by
+    Laplace evidence.
     """
     method, solver = _check_options(method, solver, top, contacts, prior)
+    if robust not in ROBUST:
+        raise ContactPoseError(f"robust must be one of {ROBUST}, got {robust!r}")
     max_outliers = _check_outliers(max_outliers, method, contacts.n)
     if position_noise is None:
         position_noise = DEFAULT_POSITION_NOISE_FRAC * model.diameter
     tolerance = Tolerance.from_noise(position_noise, normal_noise_deg, model_error)
     _warn_units(model, contacts, tolerance)
     start = time.perf_counter()
-    arrays, timing = _search(model, contacts, tolerance, prior, method, solver)
+    pose_solver = "closed-form" if solver == "factor-graph" else solver
+    arrays, timing = _search(model, contacts, tolerance, prior, method, pose_solver)
     for dropped in _outlier_sets(contacts.n, max_outliers):
         keep = np.setdiff1d(np.arange(contacts.n), dropped)
-        sub, sub_timing = _search(model, contacts.permuted(keep), tolerance, prior, method, solver)
+        sub, sub_timing = _search(model, contacts.permuted(keep), tolerance, prior, method, pose_solver)
         arrays = arrays.merged(sub.widened(keep, contacts.n, len(dropped) * OUTLIER_PENALTY))
         timing = {k: timing[k] + sub_timing[k] for k in timing}
+    if solver == "factor-graph":
+        refine_start = time.perf_counter()
+        arrays = _refine(model, contacts, arrays, tolerance, prior, robust, refine)
+        timing["refine"] = time.perf_counter() - refine_start
     classes_start = time.perf_counter()
     classes = pose_classes(model, arrays, contacts.n)
     status, hint = _status(model, contacts, arrays, classes, tolerance)
@@ -307,6 +331,24 @@ def _search(model, contacts, tolerance, prior, method, solver):
     return arrays, dict(zip(("pairs", "tree", "pose", "rank"), np.diff(clock).tolist()))
 
 
+def _refine(model, contacts, arrays, tolerance, prior, robust, k):
+    """The factor graph's refinement of the best k hypotheses, as ranked HypothesisArrays
+    (by Laplace evidence), with covariance and probability."""
+    from contactpose.solvers.factor_graph import refine_hypotheses
+
+    if len(arrays.cost) == 0:
+        return arrays
+    if (arrays.facets < 0).any():
+        raise ContactPoseError("solver='factor-graph' does not combine with max_outliers yet")
+    ref = refine_hypotheses(model, contacts, arrays, tolerance, prior=prior, robust=robust, k=k)
+    fit = arrays.fit.take(ref.index)
+    fit.R, fit.t = ref.poses[:, :3, :3], ref.poses[:, :3, 3]
+    ranked = _rank(model, contacts, ref.facets, fit, None, tolerance, "fast", order=False)
+    ranked.cost = -np.nan_to_num(ref.log_evidence, nan=-np.inf)
+    ranked.covariance, ranked.probability = ref.covariance, ref.probability
+    return ranked
+
+
 def _check_outliers(max_outliers, method, n):
     if not (isinstance(max_outliers, (int, np.integer)) and 0 <= max_outliers):
         raise ContactPoseError(f"max_outliers must be a non-negative integer, got {max_outliers!r}")
@@ -328,6 +370,8 @@ def _check_options(method, solver, top, contacts, prior):
     solver = solver or ("closed-form" if method == "fast" else "lm")
     if solver not in SOLVERS:
         raise ContactPoseError(f"solver must be one of {SOLVERS}, got {solver!r}")
+    if solver == "factor-graph" and method != "fast":
+        raise ContactPoseError("solver='factor-graph' refines the default method's hypotheses: use method='fast'")
     if top is not None and not (isinstance(top, (int, np.integer)) and top >= 1):
         raise ContactPoseError(f"top must be a positive integer or None, got {top!r}")
     if not isinstance(contacts, Contacts):
@@ -370,8 +414,8 @@ def _fit(model, contacts, facets, tolerance, prior, solver, method):
     return fit, cost
 
 
-def _rank(model, contacts, facets, fit, cost_paper, tolerance, method):
-    """Residuals and cost of every hypothesis, sorted best first."""
+def _rank(model, contacts, facets, fit, cost_paper, tolerance, method, order=True):
+    """Residuals and cost of every hypothesis, sorted best first (unless order=False)."""
     normals = model.planes.normals[facets]
     offsets = model.planes.offsets[facets]
     r_n = res.normal_residuals(fit.R, normals, contacts.finger_normals)
@@ -386,9 +430,8 @@ def _rank(model, contacts, facets, fit, cost_paper, tolerance, method):
     else:
         cost, offset_col = chi2, r_o
     residual = np.concatenate([r_n, offset_col[..., None], r_l[..., None]], axis=2)
-    order = np.argsort(cost, kind="stable")
     arrays = HypothesisArrays(facets, fit.poses(), cost, chi2, residual, fit)
-    return arrays.take(order)
+    return arrays.take(np.argsort(cost, kind="stable")) if order else arrays
 
 
 @lru_cache(maxsize=64)
@@ -439,7 +482,10 @@ def pose_classes(model, arrays, n):
     if not reps:
         return []
     chi2 = arrays.chi2
-    weight = np.array([np.sum(np.exp(-0.5 * (chi2[m] - chi2[fits[0]]))) for m in members])
+    if arrays.probability is not None:  # the factor graph's Laplace evidence
+        weight = np.array([np.sum(arrays.probability[m]) for m in members])
+    else:
+        weight = np.array([np.sum(np.exp(-0.5 * (chi2[m] - chi2[fits[0]]))) for m in members])
     prob = weight / weight.sum()
     return [PoseClass(np.array(m), int(r), arrays.poses[r], float(chi2[r]), float(p))
             for m, r, p in zip(members, reps, prob)]
@@ -457,7 +503,7 @@ def _status(model, contacts, arrays, classes, tolerance):
         return "no_hypothesis", _no_hypothesis_hint(model, contacts, tolerance)
     if arrays.fit.underdetermined[0]:
         return "underdetermined", "the hypothesised facet normals leave pose directions free; see free_translation / free_rotation"
-    if len(classes) > 1:
+    if len(classes) > 1 and (arrays.probability is None or 1.0 - classes[0].probability > AMBIGUOUS_PROBABILITY):
         return "ambiguous", (f"{len(classes)} distinct placements fit within noise (probabilities "
                              f"{', '.join(f'{c.probability:.2f}' for c in classes[:4])}); add a prior or a touch")
     if not classes:

@@ -13,7 +13,8 @@ The defaults and the reasons for them are in ``research/scan.md``.
 Public API: :func:`scan_to_mesh` (returns a :class:`ScanResult` with the mesh and
 a :class:`ScanReport`), :class:`ScanOptions`, :func:`load_cloud`,
 :func:`write_mesh`, and the CLI hooks :func:`register_cli`,
-:func:`add_scan_options`, :func:`options_from_args`, :func:`run_scan_cli`.
+:func:`add_scan_options`, :func:`options_from_args`, :func:`run_scan_cli`, and
+:func:`scan_if_cloud` (with :func:`is_cloud_file`) for commands that take a mesh or a cloud.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ import math
 import os
 import sys
 import time
+import warnings
 from dataclasses import dataclass, field
 from typing import Any, Iterator, Sequence
 
@@ -43,10 +45,15 @@ __all__ = [
     "ScanOptions", "ScanReport", "ScanResult", "scan_to_mesh", "load_cloud",
     "check_cloud", "write_mesh", "cloud_to_mesh_distance",
     "register_cli", "add_scan_options", "options_from_args", "run_scan_cli",
+    "is_cloud_file", "ply_face_count", "scan_options_given", "scan_if_cloud",
 ]
 
 #: File suffixes read by ``open3d.io.read_point_cloud``; ``.npy`` is read by numpy.
 CLOUD_SUFFIXES = (".ply", ".pcd", ".xyz", ".xyzn", ".xyzrgb", ".pts")
+#: Suffixes that are always clouds; a ``.ply`` is a cloud when it declares no faces.
+CLOUD_ONLY_SUFFIXES = (".pcd", ".xyz", ".xyzn", ".xyzrgb", ".pts", ".npy")
+#: Bytes read to find the end of a PLY header.
+PLY_HEADER_MAX = 1 << 16
 #: Reconstruction methods.
 METHODS = ("poisson", "bpa")
 #: Ways to get normals: estimate and orient by given normals when present ("auto"),
@@ -570,6 +577,7 @@ def add_scan_options(parser, prefix: str = "") -> None:
     """
     g = parser.add_argument_group("scan options (defaults scale with the cloud)")
     p = "--" + prefix
+    parser.set_defaults(scan_prefix=prefix)
 
     def add(name, **kw):
         g.add_argument(p + name, dest="scan_" + name.replace("-", "_"), **kw)
@@ -602,6 +610,60 @@ def options_from_args(args) -> ScanOptions:
     if opt.crop is not None and len(opt.crop) == 1:
         opt.crop = tuple(opt.crop[0])
     return opt
+
+
+def is_cloud_file(path) -> bool:
+    """Whether ``path`` is an existing point-cloud file rather than a mesh.
+
+    PCD, XYZ (XYZN, XYZRGB, PTS) and NPY files are clouds. A PLY file is a cloud
+    when its header declares no faces (``element face 0``, or no face element);
+    a PLY header that cannot be read counts as a mesh, so the mesh loader reports
+    the problem. Other suffixes, built-in object names and missing paths are not clouds.
+    """
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        return False
+    suffix = os.path.splitext(path)[1].lower()
+    if suffix in CLOUD_ONLY_SUFFIXES:
+        return True
+    return suffix == ".ply" and ply_face_count(path) == 0
+
+
+def ply_face_count(path) -> int | None:
+    """Faces declared in a PLY file's header: 0 without a face element, None if unreadable."""
+    with open(path, "rb") as fh:
+        head = fh.read(PLY_HEADER_MAX)
+    end = head.find(b"end_header")
+    if not head.startswith(b"ply") or end < 0:
+        return None
+    for line in head[:end].decode("ascii", "replace").splitlines():
+        words = line.split()
+        if len(words) == 3 and words[:2] == ["element", "face"]:
+            return int(words[2]) if words[2].isdigit() else None
+    return 0
+
+
+def scan_options_given(args) -> list[str]:
+    """Command-line flags of the scan options set in ``args`` (see :func:`add_scan_options`)."""
+    prefix = "--" + getattr(args, "scan_prefix", "")
+    return [prefix + f.name.replace("_", "-") for f in dataclasses.fields(ScanOptions)
+            if getattr(args, "scan_" + f.name, None) is not None]
+
+
+def scan_if_cloud(path, args) -> ScanResult | None:
+    """Reconstruct ``path`` with the scan options in ``args`` when it is a cloud file.
+
+    For commands that take a mesh or a cloud (``build-model``): returns the
+    :class:`ScanResult` of :func:`scan_to_mesh` for a cloud file, and None for
+    anything else (mesh files, built-in object names, model files), warning
+    when scan options were given with a mesh.
+    """
+    if is_cloud_file(path):
+        return scan_to_mesh(path, options_from_args(args))
+    given = scan_options_given(args)
+    if given:
+        warnings.warn(f"{path} is not a point cloud file; ignoring {', '.join(given)}", stacklevel=2)
+    return None
 
 
 def register_cli(subparsers) -> None:
