@@ -39,5 +39,11 @@ test-all: setup
 bench: setup
 	$(PY) -m contactpose bench
 
+results: setup
+	$(PY) experiments/run_all.py
+
+results-quick: setup
+	$(PY) experiments/run_all.py --quick
+
 clean:
 	rm -rf $(VENV) build *.egg-info

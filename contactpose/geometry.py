@@ -25,8 +25,9 @@ from numba import njit
 
 from contactpose.errors import ContactPoseError
 
-# Prefer OpenMP: probing an old TBB first prints a warning on every start.
-numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
+# numba's own workqueue layer: Open3D brings its own OpenMP runtime, and two OpenMP
+# runtimes in one process can crash; probing an old TBB first also prints a warning.
+numba.config.THREADING_LAYER_PRIORITY = ["workqueue", "omp", "tbb"]
 
 __all__ = [
     "SLIVER_REL",

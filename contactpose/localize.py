@@ -131,6 +131,8 @@ class Hypothesis:
     outliers: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=np.int64))
     covariance: np.ndarray | None = None
     probability: float | None = None
+    samples: object | None = None
+    sample_covariance: np.ndarray | None = None
 
     def to_dict(self):
         out = {
@@ -148,6 +150,9 @@ class Hypothesis:
             out["covariance"] = self.covariance.tolist()
         if self.probability is not None:
             out["probability"] = float(self.probability)
+        if self.samples is not None:
+            out["sample_covariance"] = self.sample_covariance.tolist()
+            out["samples"] = self.samples.summary()
         return out
 
 
@@ -196,6 +201,7 @@ class HypothesisList(Sequence):
 
     def __init__(self, arrays):
         self.arrays = arrays
+        self.samples = {}  # rank -> PoseSamples, filled by localize(..., samples=N)
 
     def __len__(self):
         return len(self.arrays.cost)
@@ -214,6 +220,8 @@ class HypothesisList(Sequence):
             outliers=np.flatnonzero(a.facets[i] < 0),
             covariance=None if a.covariance is None else a.covariance[i],
             probability=None if a.probability is None else float(a.probability[i]),
+            samples=self.samples.get(i),
+            sample_covariance=None if i not in self.samples else self.samples[i].covariance,
         )
 
 
@@ -259,7 +267,7 @@ class Result:
 
 def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prior=None,
              method="fast", solver=None, top=None, model_error=0.0, max_outliers=0, robust="huber",
-             refine=DEFAULT_REFINE):
+             refine=DEFAULT_REFINE, samples=0, seed=None, sample_top=1):
     """Find every admissible finger-to-facet assignment and the object pose behind each.
 
     model : ObjectModel; contacts : Contacts (world frame); position_noise : per-axis σ of
@@ -273,7 +281,9 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
     robust : "huber" | "cauchy" | "none", the factor graph's kernel; refine : how many of the
     best closed-form hypotheses the factor graph refines (0: all). With
     solver="factor-graph" hypotheses carry .covariance and .probability and are ranked by
-    Laplace evidence.
+    Laplace evidence. samples : draw this many posterior samples (emcee) of the pose of
+    each of the best ``sample_top`` hypotheses, into .samples and .sample_covariance;
+    seed makes the sampling repeatable.
     """
     method, solver = _check_options(method, solver, top, contacts, prior)
     if robust not in ROBUST:
@@ -302,9 +312,25 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
     if top is not None:
         arrays = arrays.take(slice(0, top))
     timing["rank"] += time.perf_counter() - classes_start
+    result = Result(status, HypothesisList(arrays), timing, method, solver, tolerance, hint,
+                    num_hypotheses=num, classes=classes)
+    if samples:
+        sample_start = time.perf_counter()
+        _attach_samples(model, contacts, result, samples, seed, prior, robust, sample_top)
+        timing["sample"] = time.perf_counter() - sample_start
     timing["total"] = time.perf_counter() - start
-    return Result(status, HypothesisList(arrays), timing, method, solver, tolerance, hint,
-                  num_hypotheses=num, classes=classes)
+    return result
+
+
+def _attach_samples(model, contacts, result, samples, seed, prior, robust, top):
+    """Posterior samples of the best ``top`` hypotheses (contactpose.uncertainty)."""
+    from contactpose.uncertainty import attach_samples
+
+    if not (isinstance(samples, (int, np.integer)) and samples > 0):
+        raise ContactPoseError(f"samples must be a positive integer, got {samples!r}")
+    hyps = attach_samples(model, contacts, result, int(samples), np.random.default_rng(seed),
+                          prior=prior, robust=robust, top=top)
+    result.hypotheses.samples.update({i: h.samples for i, h in enumerate(hyps) if h.samples is not None})
 
 
 def _search(model, contacts, tolerance, prior, method, solver):

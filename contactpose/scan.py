@@ -12,9 +12,10 @@ The defaults and the reasons for them are in ``research/scan.md``.
 
 Public API: :func:`scan_to_mesh` (returns a :class:`ScanResult` with the mesh and
 a :class:`ScanReport`), :class:`ScanOptions`, :func:`load_cloud`,
-:func:`write_mesh`, and the CLI hooks :func:`register_cli`,
-:func:`add_scan_options`, :func:`options_from_args`, :func:`run_scan_cli`, and
-:func:`scan_if_cloud` (with :func:`is_cloud_file`) for commands that take a mesh or a cloud.
+:func:`write_mesh`, :func:`surface_agreement` (a mesh against the true surface),
+and the CLI hooks :func:`register_cli`, :func:`add_scan_options`,
+:func:`options_from_args`, :func:`run_scan_cli`, and :func:`scan_if_cloud`
+(with :func:`is_cloud_file`) for commands that take a mesh or a cloud.
 """
 
 from __future__ import annotations
@@ -43,7 +44,7 @@ log = logging.getLogger(__name__)
 
 __all__ = [
     "ScanOptions", "ScanReport", "ScanResult", "scan_to_mesh", "load_cloud",
-    "check_cloud", "write_mesh", "cloud_to_mesh_distance",
+    "check_cloud", "write_mesh", "cloud_to_mesh_distance", "surface_agreement",
     "register_cli", "add_scan_options", "options_from_args", "run_scan_cli",
     "is_cloud_file", "ply_face_count", "scan_options_given", "scan_if_cloud",
 ]
@@ -394,6 +395,48 @@ def cloud_to_mesh_distance(points: np.ndarray, mesh: trimesh.Trimesh,
                         o3d.core.Tensor(np.ascontiguousarray(mesh.faces, dtype=np.uint32)))
     dist = scene.compute_distance(o3d.core.Tensor(query)).numpy().astype(np.float64)
     return dist, len(query)
+
+
+def surface_agreement(points: np.ndarray, normals: np.ndarray,
+                      mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """How well a mesh models an oriented surface: gap and normal error at each sample.
+
+    For judging a reconstruction against the true object: sample the true
+    surface, then compare each sample with the nearest point of the mesh.
+
+    Parameters
+    ----------
+    points : (n, 3) float
+      Samples of the true surface.
+    normals : (n, 3) float
+      Unit outward normals of the true surface at them.
+    mesh : trimesh.Trimesh
+      The model, outward wound.
+
+    Returns
+    -------
+    distance : (n,) float
+      Distance from each sample to the mesh.
+    angle_deg : (n,) float
+      Angle between each sample's normal and the normal of the nearest facet, degrees.
+    facet : (n,) int
+      The nearest facet.
+    """
+    points = _as_rows(points, 3, "surface points")
+    normals = _as_rows(normals, 3, "surface normals")
+    if len(normals) != len(points):
+        raise ScanError(f"{len(points)} surface points but {len(normals)} normals; expected one normal per point")
+    if mesh is None or len(mesh.faces) == 0:
+        raise ScanError("mesh to compare is empty; expected at least one facet")
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.ascontiguousarray(mesh.vertices, dtype=np.float32)),
+                        o3d.core.Tensor(np.ascontiguousarray(mesh.faces, dtype=np.uint32)))
+    closest = scene.compute_closest_points(o3d.core.Tensor(np.ascontiguousarray(points, dtype=np.float32)))
+    facet = closest["primitive_ids"].numpy().astype(np.int64)
+    distance = np.linalg.norm(closest["points"].numpy().astype(np.float64) - points, axis=1)
+    # angle between the true normal and the nearest facet's normal
+    cos = np.einsum("ij,ij->i", np.asarray(mesh.face_normals)[facet], normals)
+    return distance, np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))), facet
 
 
 # ----------------------------------------------------------------------- steps

@@ -287,11 +287,27 @@ def _call(runner, cell):
         return None, f"{type(exc).__name__}: {exc}"
 
 
+def _call_pickled(payload, cell):
+    return _call(lambda c: _unpickled(payload)(c), cell)
+
+
+@functools.lru_cache(maxsize=8)
+def _unpickled(payload):
+    """The runner of a payload, unpickled once per worker process."""
+    import cloudpickle
+
+    return cloudpickle.loads(payload)
+
+
 def _dask_completed(runner, pending, workers, scheduler):
     """Yield (cell, rows, error) as Dask tasks finish; returns (generator, worker count)."""
+    import cloudpickle
     from distributed import Client, LocalCluster, as_completed
 
+    # Dask pickles nested arguments by reference when it can; a task from a script imported
+    # under a module name the workers cannot import must travel by value: pickle it here.
     _pickle_task_by_value(runner.args[0])
+    payload = cloudpickle.dumps(runner)
     if scheduler is not None:
         cluster = None
         client = Client(scheduler)
@@ -299,14 +315,14 @@ def _dask_completed(runner, pending, workers, scheduler):
         n = workers if workers is not None else (os.cpu_count() or 1)
         if n < 1:
             raise SweepError(f"workers must be >= 1 for a LocalCluster (0 runs in-process), got {workers}")
-        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
+        cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0",
                                silence_logs=logging.ERROR, env=WORKER_ENV)
         client = Client(cluster)
     n_workers = len(client.scheduler_info()["workers"]) if scheduler else n
 
     def generate():
         try:
-            futures = {client.submit(_call, runner, c, pure=False): c for c in pending}
+            futures = {client.submit(_call_pickled, payload, c, pure=False): c for c in pending}
             for future in as_completed(futures):
                 rows, error = future.result()
                 yield futures[future], rows, error
@@ -490,6 +506,25 @@ def add_arguments(parser, *, default_workers=None):
 ROOT = Path(__file__).resolve().parent.parent
 
 
+def setup_logging(*names):
+    """INFO messages of the sweep runner and the named loggers on stderr; others at WARNING."""
+    logging.basicConfig(level=logging.WARNING, format="%(message)s")
+    logging.getLogger("distributed").setLevel(logging.ERROR)  # cluster start/stop chatter
+    for name in (__name__, *names):
+        logging.getLogger(name).setLevel(logging.INFO)
+
+
+def workers_for(args, config):
+    """--workers if given, else the config's "workers" (None: the number of CPUs)."""
+    return args.workers if args.workers is not None else config.get("workers")
+
+
+def read_run(out_dir):
+    """run.json of the last run under out_dir ({} if none): machine, workers, seconds."""
+    path = Path(out_dir) / RUN_JSON
+    return json.loads(path.read_text()) if path.exists() else {}
+
+
 def results_dir(args, name):
     """results/<name>/ (full) or results/_scratch/quick/<name>/ (--quick), or --out/<name>/."""
     if args.out is not None:
@@ -530,6 +565,19 @@ PAPER_RC = {
 #: Figure widths in inches: one column and two columns of a two-column paper.
 COLUMN_WIDTH = 3.5
 PAGE_WIDTH = 7.16
+
+
+def plain_log_axis(ax, axis="y"):
+    """Log axis with plain numbers (0.5, 2, 100) instead of powers of ten."""
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+
+    target = ax.yaxis if axis == "y" else ax.xaxis
+    lo, hi = sorted(ax.get_ylim() if axis == "y" else ax.get_xlim())
+    decades = np.log10(hi / lo) if lo > 0 else 9
+    # 1-2-5 ticks over a short range, powers of ten over a long one
+    target.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0) if decades < 3 else (1.0,)))
+    target.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+    target.set_minor_formatter(NullFormatter())
 
 
 def save_figure(fig, out_dir, stem):

@@ -1,0 +1,212 @@
+"""Sensor noise against recall, top-1 success, pose error and hypothesis count, both methods,
+and the pose solvers (Levenberg–Marquardt against the closed form; the factor graph when
+``localize`` offers ``solver="factor-graph"``).
+
+Grid: position noise σ_x × normal noise σ_n (per-axis standard deviations, Gaussian, not
+truncated), 4 fingers on the banana at uniform random surface points, uniformly random
+pose. Each grasp comes with a vision prior (the true pose perturbed by σ_rot, σ_trans) that
+every variant receives; localize is told the true σ_x, σ_n. Variants, on the same grasp:
+
+* ``fast/closed-form`` (the default) and ``paper/closed-form``: all hypotheses of each
+  method's search, closed-form poses;
+* ``fast/lm`` and ``paper/lm`` (the paper's method as published): LM from the prior, run
+  only when the closed-form run of the same method found at most ``lm_cap`` hypotheses
+  (LM costs about 10 ms per hypothesis); otherwise the row says ``ran = 0``.
+
+Recall: some hypothesis has rotation error < 5° and translation error < 5 % of the diameter
+(``pose_found``; ``true_found`` is the stricter "the true facet tuple is among them", which
+undercounts where method fast returns one facet per patch of coplanar facets). Top-1
+success: the best hypothesis meets the same bounds.
+
+    .venv/bin/python experiments/noise_sweep.py [--quick] [--workers N] [--scheduler tcp://HOST:PORT]
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import logging
+import sys
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from contactpose import metrics, objects, simulate, sweep
+from contactpose.localize import SOLVERS, PosePrior, localize
+from contactpose.model import ObjectModel
+
+NAME = "noise_sweep"
+log = logging.getLogger(NAME)
+
+
+def variants():
+    """(method, solver) pairs; the factor graph only if this contactpose offers it."""
+    out = [("fast", "closed-form"), ("paper", "closed-form"), ("fast", "lm"), ("paper", "lm")]
+    if "factor-graph" in SOLVERS:
+        out.append(("fast", "factor-graph"))
+    return out
+
+
+def perturbed_prior(pose, rng, sigma_rot_deg, sigma_trans):
+    """A PosePrior around pose: rotation vector ~ N(0, σ_rot²) applied in the world frame,
+    translation + N(0, σ_trans²)."""
+    T = pose.copy()
+    T[:3, :3] = Rotation.from_rotvec(rng.normal(0.0, np.radians(sigma_rot_deg), 3)).as_matrix() @ pose[:3, :3]
+    T[:3, 3] = pose[:3, 3] + rng.normal(0.0, sigma_trans, 3)
+    return PosePrior(T, sigma_rot_deg, sigma_trans)
+
+
+def outcome(model, grasp, result):
+    """Recall, top-1 and pose-error columns of one localization."""
+    facets = result.hypotheses.arrays.facets
+    best = result.best
+    row = {"status": result.status, "hypotheses": result.num_hypotheses,
+           "true_found": bool(len(facets) and np.any(np.all(facets == grasp.facets, axis=1))),
+           "pose_found": bool(len(facets) and np.any(metrics.pose_success(result.hypotheses.arrays.poses, grasp.pose,
+                                                                          model.diameter))),
+           "top1_facets": bool(best is not None and np.array_equal(best.facets, grasp.facets)),
+           "success": False, "rot_err_deg": None, "trans_err_mm": None, "adds_frac": None}
+    if best is not None:
+        row.update(success=bool(metrics.pose_success(best.pose, grasp.pose, model.diameter)),
+                   rot_err_deg=float(metrics.rotation_error_deg(best.pose, grasp.pose)),
+                   trans_err_mm=1e3 * float(metrics.translation_error(best.pose, grasp.pose)),
+                   adds_frac=metrics.adds(best.pose, grasp.pose, model.surface_points, model.surface_tree) / model.diameter)
+    return row
+
+
+def task(settings, rng, *, cfg):
+    model = sweep.cached(("model", cfg["object"]), lambda: ObjectModel.from_mesh(objects.load(cfg["object"])))
+    sx, sn = settings["position_noise_mm"] * 1e-3, settings["normal_noise_deg"]
+    grasp = simulate.grasp(model, rng, n=cfg["fingers"], position_noise=sx, normal_noise_deg=sn)
+    prior = perturbed_prior(grasp.pose, rng, cfg["prior_sigma_rot_deg"], cfg["prior_sigma_trans"])
+    rows, counts = [], {}
+    for method, solver in variants():
+        row = {"variant": f"{method}/{solver}", "method": method, "solver": solver}
+        if solver != "closed-form" and counts.get(method, 0) > cfg["lm_cap"]:
+            rows.append({**row, "ran": False, "hypotheses": counts[method]})
+            continue
+        r = localize(model, grasp.contacts, position_noise=sx, normal_noise_deg=sn, prior=prior,
+                     method=method, solver=solver)
+        if solver == "closed-form":
+            counts[method] = r.num_hypotheses
+        rows.append({**row, "ran": True, **outcome(model, grasp, r),
+                     **{f"time_{k}_ms": 1e3 * r.timing[k] for k in ("pairs", "tree", "pose", "rank", "total")}})
+    return rows
+
+
+def make_sweep(cfg):
+    grid = {"position_noise_mm": cfg["position_noise_mm"], "normal_noise_deg": cfg["normal_noise_deg"]}
+    return sweep.Sweep(NAME, functools.partial(task, cfg=cfg), grid, seeds=cfg["seeds"], base_seed=cfg["base_seed"],
+                       config={**cfg, "variants": [f"{m}/{s}" for m, s in variants()]})
+
+
+# --------------------------------------------------------------------------- figures
+
+def cell_stats(c, variant, px, nd):
+    sel = (c["variant"] == variant) & (c["position_noise_mm"] == px) & (c["normal_noise_deg"] == nd)
+    ran = sel & (c["ran"] == 1)
+    rot = c["rot_err_deg"][ran]
+    return {"recall": np.mean(c["pose_found"][ran]) if ran.any() else np.nan,
+            "success": np.mean(c["success"][ran]) if ran.any() else np.nan,
+            "rot": np.nanmedian(rot) if np.isfinite(rot).any() else np.nan,
+            "hyp": np.median(c["hypotheses"][sel]) if sel.any() else np.nan,
+            "coverage": ran.sum() / max(sel.sum(), 1), "n": int(sel.sum())}
+
+
+def plot(out_dir):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out = Path(out_dir)
+    c = sweep.read_columns(out / sweep.RESULTS_CSV)
+    pxs, nds = np.unique(c["position_noise_mm"]), np.unique(c["normal_noise_deg"])
+    colors = plt.cm.viridis(np.linspace(0, 0.85, len(nds)))
+    paths = []
+    with plt.rc_context(sweep.PAPER_RC):
+        fig, axes = plt.subplots(1, 4, figsize=(sweep.PAGE_WIDTH, 2.2))
+        panels = [("recall", "recall (a hypothesis within 5°, 5 %)", False), ("success", "top-1 success", False),
+                  ("rot", "median rotation error (°)", True), ("hyp", "median hypotheses", True)]
+        for ax, (key, label, log_y) in zip(axes, panels):
+            for nd, color in zip(nds, colors):
+                for method, style in (("fast", "-o"), ("paper", "--s")):
+                    # the search (recall, count) is the solver's input; success and error use the
+                    # method's own solver: closed form for fast, LM (the paper's) for paper
+                    solver = "closed-form" if method == "fast" or key in ("recall", "hyp") else "lm"
+                    y = [cell_stats(c, f"{method}/{solver}", px, nd)[key] for px in pxs]
+                    ax.plot(pxs, y, style, color=color, ms=3, mfc="none" if method == "paper" else color)
+            ax.set_xscale("log")
+            ax.set_xticks(pxs, [f"{p:g}" for p in pxs])
+            ax.minorticks_off()
+            ax.set_xlabel("position noise σ_x (mm)")
+            ax.set_ylabel(label)
+            if log_y:
+                ax.set_yscale("log")
+                sweep.plain_log_axis(ax)
+            else:
+                ax.set_ylim(-0.03, 1.03)
+        axes[2].axhline(metrics.SUCCESS_ROT_DEG, color="0.5", lw=0.6, ls=":")
+        handles = [plt.Line2D([], [], color=col, label=f"σ_n = {nd:g}°") for nd, col in zip(nds, colors)]
+        handles += [plt.Line2D([], [], color="k", ls="-", marker="o", ms=3, label="fast (closed form)"),
+                    plt.Line2D([], [], color="k", ls="--", marker="s", mfc="none", ms=3,
+                               label="paper (success, error: LM where ≤ cap hypotheses)")]
+        fig.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, 0.0), ncol=len(handles), frameon=False)
+        fig.tight_layout()
+        paths += sweep.save_figure(fig, out, NAME)
+        plt.close(fig)
+
+        # solvers: success of each variant per noise cell (on the grasps where it ran)
+        vs = [v for v in dict.fromkeys(c["variant"])]
+        cells = [(px, nd) for px in pxs for nd in nds]
+        fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(sweep.PAGE_WIDTH, 2.4))
+        x = np.arange(len(cells))
+        w = 0.8 / len(vs)
+        for i, v in enumerate(vs):
+            st = [cell_stats(c, v, px, nd) for px, nd in cells]
+            ax1.bar(x + (i - (len(vs) - 1) / 2) * w, [s["success"] for s in st], w, label=v)
+            ax2.bar(x + (i - (len(vs) - 1) / 2) * w, [s["coverage"] for s in st], w, label=v)
+        for ax, label in ((ax1, "top-1 success (where run)"), (ax2, "fraction of grasps run")):
+            ax.set_xticks(x, [f"{px:g}/{nd:g}" for px, nd in cells], rotation=90)
+            ax.set_xlabel("σ_x (mm) / σ_n (°)")
+            ax.set_ylabel(label)
+            ax.set_ylim(0, 1.05)
+        ax1.legend(loc="upper center", bbox_to_anchor=(1.1, -0.45), ncol=len(vs), frameon=False)
+        fig.tight_layout()
+        paths += sweep.save_figure(fig, out, f"{NAME}_solvers")
+        plt.close(fig)
+    return paths
+
+
+def headline(out_dir):
+    """One line per variant at each noise level: recall and success."""
+    c = sweep.read_columns(Path(out_dir) / sweep.RESULTS_CSV)
+    lines = []
+    for v in dict.fromkeys(c["variant"]):
+        for px in np.unique(c["position_noise_mm"]):
+            for nd in np.unique(c["normal_noise_deg"]):
+                s = cell_stats(c, v, px, nd)
+                lines.append(f"{v:20s} σx={px:<5g}mm σn={nd:<4g}° recall {s['recall']:.2f} success {s['success']:.2f} "
+                             f"median rot {s['rot']:.2f}° median H {s['hyp']:.0f} run on {s['coverage']:.0%}")
+    return "\n".join(lines)
+
+
+def main(argv=None):
+    parser = sweep.add_arguments(argparse.ArgumentParser(description=__doc__.split("\n")[0]))
+    args = parser.parse_args(argv)
+    sweep.setup_logging(NAME)
+    cfg = sweep.load_config(NAME, args.quick)
+    out = sweep.results_dir(args, NAME)
+    if not args.plot_only:
+        report = sweep.run(make_sweep(cfg), out, workers=sweep.workers_for(args, cfg), scheduler=args.scheduler,
+                           resume=not args.fresh)
+        log.info("%s: ran %d cells, skipped %d, %.1f s", NAME, report.ran, report.skipped, report.seconds)
+    plot(out)
+    print(headline(out))
+    print(f"written: {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

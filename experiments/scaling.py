@@ -1,0 +1,216 @@
+"""Offline and online time against the facet count m (log-log), with the paper's two data points.
+
+Meshes: star-shaped rocks of increasing resolution, built here deterministically
+(:func:`rock_mesh`): a geodesic sphere of frequency f (m = 20 f² facets) with a smooth
+random radial field (the same field for every f, so only the resolution changes), scaled
+to ``size``. Per mesh: the model is built ``build_repeats`` times with exact bounds (the
+default method) and with the paper's vertex-only bounds (median times); then ``grasps``
+random 4-finger grasps (0.5 mm, 1°, bounded noise) are localized with method "fast", and
+with method "paper" while m ≤ paper_max_facets and its closed-form search stays within
+``paper_cap`` hypotheses (its LM costs about 10 ms per hypothesis).
+
+The paper's points: banana, m = 53: 40 ms offline, 116 ms online (Sun Ultra II); espresso
+machine, m = 6,767: searched only with per-finger restrictions (no time reported).
+
+    .venv/bin/python experiments/scaling.py [--quick] [--workers N] [--scheduler tcp://HOST:PORT]
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import logging
+import sys
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from contactpose import simulate, sweep
+from contactpose.localize import localize
+from contactpose.model import ObjectModel
+
+NAME = "scaling"
+log = logging.getLogger(NAME)
+PAPER_BANANA = {"m": 53, "offline_ms": 40.0, "online_ms": 116.0}
+PAPER_ESPRESSO_M = 6767
+#: Seed of the radial field: one rock shape at every resolution.
+SHAPE_SEED = 4
+
+
+def geodesic_sphere(freq):
+    """Unit geodesic sphere: every icosahedron face split into freq² triangles, vertices merged
+    and pushed to the sphere. -> (vertices (V, 3), faces (20 freq², 3)), outward winding."""
+    ico = trimesh.creation.icosahedron()
+    i, j = np.array([(i, j) for i in range(freq + 1) for j in range(freq + 1 - i)]).T
+    index = {(a, b): n for n, (a, b) in enumerate(zip(i, j))}
+    local = [(index[p, q], index[p + 1, q], index[p, q + 1]) for p in range(freq) for q in range(freq - p)]
+    local += [(index[p + 1, q], index[p + 1, q + 1], index[p, q + 1]) for p in range(freq) for q in range(freq - p - 1)]
+    local = np.array(local)
+    verts, faces = [], []
+    for face in ico.faces:
+        a, b, c = ico.vertices[face]
+        verts.append(a + (i[:, None] / freq) * (b - a) + (j[:, None] / freq) * (c - a))
+        faces.append(local + len(i) * len(faces))
+    verts, faces = np.concatenate(verts), np.concatenate(faces)
+    # merge the vertices shared by neighbouring patches (exact grid points, rounded keys)
+    keys = np.round(verts / np.linalg.norm(verts, axis=1, keepdims=True), 9)
+    _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+    order = np.argsort(first)                      # keep vertices in order of first appearance
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    unit = verts[first[order]]
+    return unit / np.linalg.norm(unit, axis=1, keepdims=True), rank[inverse.ravel()][faces]
+
+
+def rock_mesh(freq, size=0.12, seed=SHAPE_SEED, waves=12, max_freq=4.0, amplitude=0.25):
+    """A star-shaped rock with 20 freq² facets: radius 1 + amplitude·field(direction) on the
+    geodesic sphere, largest bounding-box extent ``size`` (m), centred on its bounding box."""
+    dirs, faces = geodesic_sphere(freq)
+    rng = np.random.default_rng(seed)
+    axes = rng.normal(size=(waves, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    w = rng.uniform(1.0, max_freq, waves)
+    phase = rng.uniform(0.0, 2 * np.pi, waves)
+    amp = rng.uniform(0.5, 1.0, waves) / w
+    field = np.cos(w * (dirs @ axes.T) + phase) @ amp
+    radius = 1.0 + amplitude * field / np.abs(field).max()
+    verts = dirs * radius[:, None]
+    verts *= size / np.ptp(verts, axis=0).max()
+    verts -= (verts.max(0) + verts.min(0)) / 2
+    return trimesh.Trimesh(verts, faces, process=False)
+
+
+def task(settings, rng, *, cfg):
+    f = settings["frequency"]
+    mesh = rock_mesh(f, cfg["size"])
+    warm = sweep.cached("warm", lambda: ObjectModel.from_mesh(rock_mesh(2, cfg["size"])))
+    for method in ("fast", "paper"):  # load numba kernels before timing
+        g = simulate.grasp(warm, np.random.default_rng(0), n=4, position_noise=cfg["position_noise"],
+                           normal_noise_deg=cfg["normal_noise_deg"], noise="bounded")
+        localize(warm, g.contacts, position_noise=cfg["position_noise"], normal_noise_deg=cfg["normal_noise_deg"],
+                 method=method)
+    rows = []
+    for bounds in ("exact", "paper"):
+        builds = []
+        repeats = cfg["build_repeats"] if len(mesh.faces) <= cfg["large_facets"] else cfg["build_repeats_large"]
+        for _ in range(repeats):
+            model = ObjectModel.from_mesh(mesh, bounds=bounds)
+            builds.append(model.build_seconds)
+        rows.append({"part": "offline", "bounds": bounds, "method": "", "grasp": -1, "facets": model.num_facets,
+                     "ordered_pairs": model.num_pairs, **{f"time_{k}_ms": 1e3 * float(np.median([b[k] for b in builds]))
+                                                           for k in ("features", "table", "total")}})
+    model = ObjectModel.from_mesh(mesh)
+    for gi in range(cfg["grasps"]):
+        g = simulate.grasp(model, rng, n=4, position_noise=cfg["position_noise"], normal_noise_deg=cfg["normal_noise_deg"],
+                           noise="bounded")
+        count = None
+        for method, solver in (("fast", "closed-form"), ("paper", "closed-form"), ("paper", "lm")):
+            row = {"part": "online", "bounds": "exact", "method": f"{method}/{solver}", "grasp": gi,
+                   "facets": model.num_facets, "ordered_pairs": model.num_pairs}
+            if method == "paper" and (model.num_facets > cfg["paper_max_facets"]
+                                      or (solver == "lm" and count > cfg["paper_cap"])):
+                rows.append({**row, "ran": False})
+                continue
+            r = localize(model, g.contacts, position_noise=cfg["position_noise"],
+                         normal_noise_deg=cfg["normal_noise_deg"], method=method, solver=solver)
+            if method == "paper":
+                count = r.num_hypotheses
+            found = r.hypotheses.arrays.facets
+            rows.append({**row, "ran": True, "hypotheses": r.num_hypotheses,
+                         "true_found": bool(len(found) and np.any(np.all(found == g.facets, axis=1))),
+                         **{f"time_{k}_ms": 1e3 * r.timing[k] for k in ("pairs", "tree", "pose", "rank", "total")}})
+    return rows
+
+
+def make_sweep(cfg):
+    return sweep.Sweep(NAME, functools.partial(task, cfg=cfg), {"frequency": cfg["frequencies"]}, seeds=1,
+                       base_seed=cfg["base_seed"], config=cfg)
+
+
+# --------------------------------------------------------------------------- figure
+
+def slope(m, t):
+    """Least-squares slope of log t against log m."""
+    ok = np.isfinite(t) & (t > 0)
+    return float(np.polyfit(np.log(m[ok]), np.log(t[ok]), 1)[0]) if ok.sum() >= 2 else np.nan
+
+
+def plot(out_dir):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out = Path(out_dir)
+    c = sweep.read_columns(out / sweep.TIMINGS_CSV)
+    ms = np.unique(c["facets"])
+    with plt.rc_context(sweep.PAPER_RC):
+        fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(sweep.PAGE_WIDTH, 2.6))
+        for bounds, color, label in (("exact", "tab:blue", "exact Δmin (default)"), ("paper", "tab:orange", "vertex-only Δmin (paper)")):
+            sel = (c["part"] == "offline") & (c["bounds"] == bounds)
+            m, t = c["facets"][sel], c["time_total_ms"][sel]
+            ax1.plot(m, t, "-o", color=color, ms=3, label=f"{label}, slope {slope(m, t):.2f}")
+        ax1.plot([PAPER_BANANA["m"]], [PAPER_BANANA["offline_ms"]], "*", color="k", ms=8, label="paper: banana (Sun Ultra II)")
+        ax1.set_ylabel("offline build time (ms)")
+        for method, color, label in (("fast/closed-form", "tab:blue", "method fast"), ("paper/lm", "tab:orange", "method paper (LM)"),
+                                     ("paper/closed-form", "tab:green", "paper search + closed form")):
+            sel = (c["part"] == "online") & (c["method"] == method) & (c["ran"] == 1)
+            if not sel.any():
+                continue
+            m = np.unique(c["facets"][sel])
+            med = np.array([np.median(c["time_total_ms"][sel & (c["facets"] == v)]) for v in m])
+            lo = np.array([np.percentile(c["time_total_ms"][sel & (c["facets"] == v)], 10) for v in m])
+            hi = np.array([np.percentile(c["time_total_ms"][sel & (c["facets"] == v)], 90) for v in m])
+            ax2.plot(m, med, "-o", color=color, ms=3, label=f"{label}, slope {slope(m, med):.2f}")
+            ax2.fill_between(m, lo, hi, color=color, alpha=0.15, lw=0)
+        ax2.plot([PAPER_BANANA["m"]], [PAPER_BANANA["online_ms"]], "*", color="k", ms=8, label="paper: banana (Sun Ultra II)")
+        ax2.set_ylabel("online time per grasp (ms; median, 10–90 %)")
+        for ax in (ax1, ax2):
+            ax.axvline(PAPER_ESPRESSO_M, color="0.4", ls=":", lw=0.8)
+            ax.text(PAPER_ESPRESSO_M, 0.03, " paper: espresso,\n m = 6,767, only with\n per-finger restrictions",
+                    transform=ax.get_xaxis_transform(), fontsize=5.5, ha="right", va="bottom", color="0.3")
+            ax.set_xscale("log")
+            ax.set_yscale("log")
+            ax.set_xlabel("facets m")
+            ax.set_xlim(min(40, ms.min() * 0.8), max(PAPER_ESPRESSO_M * 1.5, ms.max() * 1.3))
+            sweep.plain_log_axis(ax, "x")
+            sweep.plain_log_axis(ax, "y")
+            ax.legend(loc="upper left", frameon=False)
+        fig.tight_layout()
+        paths = sweep.save_figure(fig, out, NAME)
+        plt.close(fig)
+    return paths
+
+
+def summary(out_dir):
+    c = sweep.read_columns(Path(out_dir) / sweep.TIMINGS_CSV)
+    lines = []
+    for m in np.unique(c["facets"]):
+        s = c["facets"] == m
+        off = {b: c["time_total_ms"][s & (c["part"] == "offline") & (c["bounds"] == b)] for b in ("exact", "paper")}
+        on = {v: c["time_total_ms"][s & (c["method"] == v) & (c["ran"] == 1)] for v in ("fast/closed-form", "paper/lm")}
+        lines.append(f"m={int(m):6d}: build exact {off['exact'][0]:9.1f} ms, paper bounds {off['paper'][0]:9.1f} ms | "
+                     f"online fast median {np.median(on['fast/closed-form']):8.2f} ms, paper/lm "
+                     + (f"{np.median(on['paper/lm']):8.1f} ms ({len(on['paper/lm'])} grasps)" if len(on["paper/lm"]) else "not run"))
+    return "\n".join(lines)
+
+
+def main(argv=None):
+    parser = sweep.add_arguments(argparse.ArgumentParser(description=__doc__.split("\n")[0]))
+    args = parser.parse_args(argv)
+    sweep.setup_logging(NAME)
+    cfg = sweep.load_config(NAME, args.quick)
+    out = sweep.results_dir(args, NAME)
+    if not args.plot_only:
+        report = sweep.run(make_sweep(cfg), out, workers=sweep.workers_for(args, cfg), scheduler=args.scheduler,
+                           resume=not args.fresh)
+        log.info("%s: ran %d cells, skipped %d, %.1f s", NAME, report.ran, report.skipped, report.seconds)
+    plot(out)
+    print(summary(out))
+    print(f"written: {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

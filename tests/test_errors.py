@@ -1,0 +1,862 @@
+"""Bad input gives a ContactPoseError (or a warning) that names the value and the expectation (issue 8).
+
+One test per case of the issue's list: meshes, contacts files, prior files, model files,
+resource limits, and the CLI's contract (exit code 2, exactly one stderr line, no traceback).
+Cases where the library falls short are written anyway and marked
+``xfail(strict=True)`` with the reason, so they turn red the day they are fixed.
+"""
+
+import json
+import os
+import re
+import subprocess
+import sys
+import warnings
+import zipfile
+from collections import namedtuple
+
+import numpy as np
+import pytest
+import trimesh
+
+import contactpose as cp
+from contactpose import cli, io, objects
+from contactpose import model as model_module
+from contactpose.contacts import Contacts
+from contactpose.errors import (ContactPoseError, ContactsError, MeshError, ModelFileError, PriorError,
+                                ResourceError)
+from contactpose.localize import PosePrior
+from contactpose.model import FORMAT_VERSION, ObjectModel
+
+#: Small bins keep the model files of these tests a few kB.
+SMALL_BINS = (4, 4, 4)
+GOOD_CONTACTS = [
+    {"point": [0.0, 0.0, 0.02], "finger_normal": [0.0, 0.0, -1.0]},
+    {"point": [0.0, 0.0, -0.02], "finger_normal": [0.0, 0.0, 1.0]},
+    {"point": [0.05, 0.0, 0.0], "finger_normal": [-1.0, 0.0, 0.0]},
+]
+GOOD_PRIOR = {"pose": np.eye(4).tolist(), "sigma_rot_deg": 10.0, "sigma_trans": 0.01}
+
+
+# --------------------------------------------------------------------- helpers
+
+def raises(kind, *fragments):
+    """pytest.raises(kind) that also checks each fragment occurs in the message."""
+    return _Raises(kind, fragments)
+
+
+class _Raises:
+    def __init__(self, kind, fragments):
+        self.kind, self.fragments, self.ctx = kind, fragments, pytest.raises(kind)
+
+    def __enter__(self):
+        self.info = self.ctx.__enter__()
+        return self.info
+
+    def __exit__(self, *exc):
+        out = self.ctx.__exit__(*exc)
+        if not out:  # another exception type: let it propagate unchanged
+            return out
+        message = str(self.info.value)
+        for fragment in self.fragments:
+            assert fragment in message, f"{fragment!r} not in message {message!r}"
+        return out
+
+
+def write_obj(path, vertices, faces, header=""):
+    """A plain OBJ (1-based faces) in the given face order."""
+    lines = [header] if header else []
+    lines += [f"v {x:.17g} {y:.17g} {z:.17g}" for x, y, z in vertices]
+    lines += [f"f {a + 1} {b + 1} {c + 1}" for a, b, c in faces]
+    path.write_text("\n".join(lines) + "\n")
+    return str(path)
+
+
+def write_json(path, data):
+    path.write_text(json.dumps(data))
+    return str(path)
+
+
+def contacts_doc(*contacts):
+    return {"contacts": [dict(c) for c in (contacts or GOOD_CONTACTS)]}
+
+
+def recorded(fn, *args, **kwargs):
+    """(result, [warning messages]) of fn(*args, **kwargs)."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        result = fn(*args, **kwargs)
+    return result, [str(w.message) for w in caught]
+
+
+@pytest.fixture(scope="module")
+def box_mesh():
+    return objects.load("box")
+
+
+@pytest.fixture(scope="module")
+def box_small(box_mesh):
+    """The box with small bins: a model file of a few kB."""
+    return ObjectModel.from_mesh(box_mesh, bins=SMALL_BINS)
+
+
+@pytest.fixture(scope="module")
+def box_file(box_small, tmp_path_factory):
+    return box_small.save(tmp_path_factory.mktemp("model") / "box.npz")
+
+
+@pytest.fixture(scope="module")
+def box_arrays(box_file):
+    with np.load(box_file) as npz:
+        return {k: npz[k] for k in npz.files}
+
+
+def rewrite(tmp_path, arrays, resign=False, **changes):
+    """A copy of a model file's arrays with some replaced (None: dropped), saved to tmp_path.
+
+    resign : store a content hash of the changed arrays (a file written that way, not
+    damaged afterwards), else keep the original hash (a file changed after saving).
+    """
+    data = {k: v for k, v in {**arrays, **changes}.items() if v is not None}
+    if resign and hasattr(model_module, "content_hash"):
+        data.pop("content_hash", None)
+        data["content_hash"] = np.array(model_module.content_hash(data))
+    path = tmp_path / "changed.npz"
+    np.savez(path, **data)
+    return str(path)
+
+
+# ---------------------------------------------------------------------- meshes
+
+def test_missing_mesh_file(tmp_path):
+    path = str(tmp_path / "nope.stl")
+    with raises(MeshError, path, "does not exist"):
+        ObjectModel.from_mesh(path)
+
+
+def test_mesh_path_is_a_directory(tmp_path):
+    path = tmp_path / "folder.stl"
+    path.mkdir()
+    with raises(MeshError, str(path), "not a file"):
+        ObjectModel.from_mesh(str(path))
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root reads files without read permission")
+def test_mesh_file_without_read_permission(tmp_path, box_mesh):
+    path = tmp_path / "locked.stl"
+    box_mesh.export(path)
+    path.chmod(0)
+    with raises(MeshError, str(path)):
+        ObjectModel.from_mesh(str(path))
+
+
+@pytest.mark.parametrize("ext", ["ply", "off", "glb"])
+def test_text_file_with_mesh_extension_names_the_file(tmp_path, ext):
+    path = tmp_path / f"notes.{ext}"
+    path.write_text("these are my notes, not a mesh\n")
+    with raises(MeshError, "cannot read", str(path), "as a mesh"):
+        ObjectModel.from_mesh(str(path))
+
+
+@pytest.mark.parametrize("ext,content", [("stl", b"these are my notes, not a mesh\n"),
+                                         ("stl", bytes(range(256)) * 2), ("obj", b"hello\n")])
+def test_non_mesh_file_is_a_mesh_error(tmp_path, ext, content):
+    """trimesh reads text or random bytes as an STL/OBJ with no faces: still a MeshError."""
+    path = tmp_path / f"junk.{ext}"
+    path.write_bytes(content)
+    with raises(MeshError, "faces", "(0, 3)"):
+        ObjectModel.from_mesh(str(path))
+
+
+@pytest.mark.xfail(strict=True, reason="library: a text/random file named .stl or .obj parses as a mesh with no "
+                   "faces, and the error 'mesh needs faces of shape (m, 3) with m >= 1, got shape (0, 3)' names "
+                   "neither the file nor that it is not a mesh (load_mesh should say 'cannot read PATH as a mesh: "
+                   "no faces')")
+@pytest.mark.parametrize("ext", ["stl", "obj"])
+def test_non_mesh_stl_or_obj_names_the_file(tmp_path, ext):
+    path = tmp_path / f"notes.{ext}"
+    path.write_text("these are my notes, not a mesh\n")
+    with raises(MeshError, str(path)):
+        ObjectModel.from_mesh(str(path))
+
+
+def test_unsupported_mesh_format(tmp_path):
+    path = tmp_path / "mesh.xyz123"
+    path.write_text("v 0 0 0\n")
+    with raises(MeshError, str(path), "not supported"):
+        ObjectModel.from_mesh(str(path))
+
+
+def test_empty_mesh():
+    with raises(MeshError, "m >= 1", "(0, 3)"):
+        ObjectModel.from_mesh(trimesh.Trimesh())
+
+
+def test_mesh_file_with_vertices_but_no_faces(tmp_path):
+    path = write_obj(tmp_path / "points.obj", np.eye(3), [])
+    with raises(MeshError, "m >= 1", "(0, 3)"):
+        ObjectModel.from_mesh(path)
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_non_finite_vertex(box_mesh, bad):
+    v = box_mesh.vertices.copy()
+    v[3, 1] = bad
+    with raises(MeshError, "1 non-finite vertices", "index 3"):
+        ObjectModel.from_mesh(trimesh.Trimesh(v, box_mesh.faces, process=False))
+
+
+def test_non_finite_vertex_in_file(tmp_path, box_mesh):
+    v = box_mesh.vertices.copy()
+    v[5, 0] = np.nan
+    with raises(MeshError, "non-finite", "index 5"):
+        ObjectModel.from_mesh(write_obj(tmp_path / "nan.obj", v, box_mesh.faces))
+
+
+@pytest.mark.parametrize("face", [[0, 1, 5], [0, 1, -1]])
+def test_face_index_out_of_range(face):
+    mesh = trimesh.Trimesh(np.eye(3), [[0, 1, 2], face], process=False)
+    with raises(MeshError, "face indices must lie in [0, 2]", str(max(face) if max(face) > 2 else min(face))):
+        ObjectModel.from_mesh(mesh)
+
+
+def test_face_index_out_of_range_in_ply(tmp_path):
+    path = tmp_path / "oob.ply"
+    path.write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+                    "property float z\nelement face 2\nproperty list uchar int vertex_indices\nend_header\n"
+                    "0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n3 0 1 7\n")
+    with raises(MeshError, "face indices must lie in [0, 2]", "7"):
+        ObjectModel.from_mesh(str(path))
+
+
+@pytest.mark.parametrize("ext,text", [
+    ("obj", "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\nf 1 2 9\n"),
+    ("off", "OFF\n3 2 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n3 0 1 7\n"),
+])
+def test_face_index_out_of_range_in_obj_off(tmp_path, ext, text):
+    """trimesh itself rejects these; the error still names the file and says 'cannot read'."""
+    path = tmp_path / f"oob.{ext}"
+    path.write_text(text)
+    with raises(MeshError, "cannot read", str(path)):
+        ObjectModel.from_mesh(str(path))
+
+
+def test_all_facets_degenerate():
+    collinear = trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0]], [[0, 1, 2], [1, 2, 3]], process=False)
+    with raises(MeshError, "all 2 facets are degenerate"):
+        ObjectModel.from_mesh(collinear)
+
+
+def test_all_vertices_coincide():
+    with raises(MeshError, "zero extent"):
+        ObjectModel.from_mesh(trimesh.Trimesh(np.zeros((3, 3)), [[0, 1, 2]], process=False))
+
+
+def test_some_facets_degenerate_warns_and_keeps_indices(box_mesh):
+    v = np.concatenate([box_mesh.vertices, [[0.0, 0.0, 0.0], [0.01, 0.0, 0.0], [0.02, 0.0, 0.0]]])
+    k = len(box_mesh.vertices)
+    faces = np.concatenate([box_mesh.faces[:10], [[k, k + 1, k + 2]], box_mesh.faces[10:]])
+    model, messages = recorded(ObjectModel.from_mesh, trimesh.Trimesh(v, faces, process=False))
+    assert any("1 degenerate facets excluded" in m and ": 10" in m for m in messages), messages
+    assert model.num_facets == len(faces) and not model.planes.valid[10] and model.planes.valid.sum() == len(faces) - 1
+
+
+def _flip(faces, rows):
+    out = faces.copy()
+    out[rows] = out[rows][:, ::-1]
+    return out
+
+
+def test_inconsistent_winding_warns(box_mesh):
+    mesh = trimesh.Trimesh(box_mesh.vertices, _flip(box_mesh.faces, slice(0, 5)), process=False)
+    _, messages = recorded(ObjectModel.from_mesh, mesh)
+    assert any("winding is inconsistent" in m and "--fix-normals" in m for m in messages), messages
+
+
+def test_fix_normals_repairs_inconsistent_winding(box_mesh):
+    good = ObjectModel.from_mesh(box_mesh)
+    mesh = trimesh.Trimesh(box_mesh.vertices, _flip(box_mesh.faces, slice(0, 5)), process=False)
+    model, messages = recorded(ObjectModel.from_mesh, mesh, fix_normals=True)
+    assert not any("winding" in m or "inward" in m for m in messages), messages
+    np.testing.assert_allclose(model.planes.normals, good.planes.normals, atol=1e-12)
+    assert np.array_equal(np.sort(model.faces, axis=1), np.sort(box_mesh.faces, axis=1))  # face order kept
+
+
+def test_inverted_closed_mesh_warns(box_mesh):
+    mesh = trimesh.Trimesh(box_mesh.vertices, box_mesh.faces[:, ::-1], process=False)
+    _, messages = recorded(ObjectModel.from_mesh, mesh)
+    assert any("point inward" in m and "--fix-normals" in m for m in messages), messages
+
+
+@pytest.mark.xfail(strict=True, reason="library: model.rewind_outward compares merged.face_normals before and after "
+                   "trimesh.repair.fix_normals, but Trimesh.invert() (trimesh 5.2) leaves the cached face_normals "
+                   "unchanged, so no face counts as flipped and an inside-out closed mesh stays inside out; "
+                   "compute the normals after the repair from merged.vertices[merged.faces] instead")
+def test_fix_normals_repairs_inverted_closed_mesh(box_mesh):
+    good = ObjectModel.from_mesh(box_mesh)
+    mesh = trimesh.Trimesh(box_mesh.vertices, box_mesh.faces[:, ::-1], process=False)
+    model, messages = recorded(ObjectModel.from_mesh, mesh, fix_normals=True)
+    assert not any("inward" in m for m in messages), messages
+    np.testing.assert_allclose(model.planes.normals, good.planes.normals, atol=1e-12)
+
+
+def test_cli_fix_normals_repairs_winding(tmp_path, box_mesh, capsys, monkeypatch):
+    monkeypatch.setattr(warnings, "showwarning", warnings.showwarning)  # main() replaces it
+    path = write_obj(tmp_path / "flipped.obj", box_mesh.vertices, _flip(box_mesh.faces, [0, 7, 20]))
+    out = str(tmp_path / "m.npz")
+    assert cli.main(["build-model", path, "-o", out, "--bins", "4", "4", "4"]) == 0
+    assert "warning: face winding is inconsistent" in capsys.readouterr().err
+    assert cli.main(["build-model", path, "-o", out, "--bins", "4", "4", "4", "--fix-normals"]) == 0
+    assert "warning" not in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("material", [
+    "",                                        # the .mtl file itself is missing
+    "newmtl skin\nKd 0.8 0.7 0.2\nmap_Kd missing_texture.png\n",  # the .mtl names a missing image
+])
+def test_obj_with_missing_texture_loads(tmp_path, box_mesh, material):
+    if material:
+        (tmp_path / "skin.mtl").write_text(material)
+    path = tmp_path / "textured.obj"
+    write_obj(path, box_mesh.vertices, box_mesh.faces, header="mtllib skin.mtl\nusemtl skin")
+    text = path.read_text().replace("\nf ", "\nvt 0 0\nf ", 1)  # one texture coordinate too
+    path.write_text(text)
+    model, _ = recorded(ObjectModel.from_mesh, str(path), bins=SMALL_BINS)
+    assert model.num_facets == len(box_mesh.faces)
+    np.testing.assert_allclose(model.vertices[model.faces], box_mesh.vertices[box_mesh.faces])
+
+
+# ------------------------------------------------------------- contacts files
+
+def test_contacts_file_missing(tmp_path):
+    path = str(tmp_path / "none.json")
+    with raises(ContactsError, path, "does not exist"):
+        io.read_contacts(path)
+
+
+def test_contacts_file_is_a_directory(tmp_path):
+    with raises(ContactsError, "cannot read", str(tmp_path)):
+        io.read_contacts(tmp_path)
+
+
+@pytest.mark.parametrize("text", ["", "{", '{"contacts": [}', "{'contacts': []}", '{"contacts": [1,]}'])
+def test_contacts_invalid_json(tmp_path, text):
+    path = tmp_path / "c.json"
+    path.write_text(text)
+    with raises(ContactsError, str(path), "is not valid JSON", "line 1"):
+        io.read_contacts(path)
+
+
+def test_contacts_not_utf8(tmp_path):
+    path = tmp_path / "c.json"
+    path.write_bytes(b'\xff\xfe{"contacts": []}')
+    with raises(ContactsError, str(path), "not UTF-8"):
+        io.read_contacts(path)
+
+
+def test_contacts_integer_beyond_digit_limit(tmp_path):
+    path = tmp_path / "c.json"
+    path.write_text('{"contacts": [{"point": [' + "9" * 5000 + ", 0, 0]}]}")
+    with raises(ContactsError, str(path), "digits"):
+        io.read_contacts(path)
+
+
+def test_contacts_nested_too_deeply(tmp_path):
+    path = tmp_path / "c.json"
+    path.write_text("[" * 100_000 + "]" * 100_000)
+    with raises(ContactsError, str(path), "nested too deeply"):
+        io.read_contacts(path)
+
+
+@pytest.mark.parametrize("data", [None, [], [1, 2], {"contact": []}, {"contacts": {"point": [0, 0, 0]}}])
+def test_contacts_top_level_shape(data):
+    with raises(ContactsError, 'must be an object {"contacts": [...]}', "got " + json.dumps(data)[:20]):
+        io.parse_contacts(data)
+
+
+def test_contacts_missing_point():
+    with raises(ContactsError, "contact 1", '"point"', "finger_normal"):
+        io.parse_contacts(contacts_doc(GOOD_CONTACTS[0], {"finger_normal": [0, 0, 1]}))
+
+
+def test_contacts_entry_not_an_object():
+    with raises(ContactsError, "contact 0 must be an object", "[0, 0, 0]"):
+        io.parse_contacts({"contacts": [[0, 0, 0], GOOD_CONTACTS[1]]})
+
+
+@pytest.mark.parametrize("field,value", [
+    ("point", [0.0, 0.0]), ("point", [[0.0, 0.0, 0.0]]), ("point", [0, 0, 0, 0]), ("point", ["0", 0, 0]),
+    ("point", [True, 0, 0]), ("point", "0 0 0"), ("point", None), ("finger_normal", [0, 1]),
+    ("finger_normal", {"x": 1}),
+])
+def test_contacts_wrong_shape_or_type(field, value):
+    bad = dict(GOOD_CONTACTS[1], **{field: value})
+    with raises(ContactsError, f"contact 1 {field} must be a list of 3 numbers", "got " + json.dumps(value)[:10]):
+        io.parse_contacts(contacts_doc(GOOD_CONTACTS[0], bad))
+
+
+def test_contacts_coordinate_too_large_for_float():
+    bad = dict(GOOD_CONTACTS[0], point=[10 ** 400, 0, 0])
+    with raises(ContactsError, "contact 0 point", "representable as a float"):
+        io.parse_contacts(contacts_doc(bad, GOOD_CONTACTS[1]))
+
+
+@pytest.mark.parametrize("kind", ["both", "neither"])
+def test_contacts_both_or_neither_normal(kind):
+    c = {"point": [0.0, 0.0, 0.0]}
+    if kind == "both":
+        c.update(finger_normal=[0, 0, 1], object_normal=[0, 0, -1])
+    want = "['finger_normal', 'object_normal']" if kind == "both" else "neither"
+    with raises(ContactsError, 'contact 0 needs exactly one of "finger_normal" or "object_normal"', want):
+        io.parse_contacts(contacts_doc(c, GOOD_CONTACTS[1]))
+
+
+def test_contacts_mixed_normal_kinds():
+    other = {"point": [0.0, 0.0, -0.02], "object_normal": [0.0, 0.0, -1.0]}
+    with raises(ContactsError, "same kind of normal", "both kinds"):
+        io.parse_contacts(contacts_doc(GOOD_CONTACTS[0], other))
+
+
+def test_contacts_both_normals_in_the_constructor():
+    with raises(ContactsError, "exactly one of finger_normals or object_normals"):
+        Contacts(np.zeros((2, 3)), finger_normals=np.eye(3)[:2], object_normals=np.eye(3)[:2])
+
+
+@pytest.mark.parametrize("points,normals,want", [
+    (np.zeros((3, 2)), np.zeros((3, 2)), "points must have shape (n, 3), got shape (3, 2)"),
+    (np.eye(3), np.eye(3)[:2], "finger_normals must have shape (3, 3), got shape (2, 3)"),
+    ([[0, 0, "a"], [1, 0, 0]], np.eye(3)[:2], "points must be numbers of shape (n, 3)"),
+])
+def test_contacts_constructor_shapes(points, normals, want):
+    with raises(ContactsError, want):
+        Contacts(points, finger_normals=normals)
+
+
+def test_zero_normal():
+    bad = dict(GOOD_CONTACTS[1], finger_normal=[0.0, 0.0, 0.0])
+    with raises(ContactsError, "finger_normals row 1 is a zero vector", "needs a direction"):
+        io.parse_contacts(contacts_doc(GOOD_CONTACTS[0], bad))
+
+
+@pytest.mark.parametrize("field,value,want", [
+    ("finger_normal", [0.0, float("nan"), 1.0], "finger_normals has a NaN or inf entry in row 1"),
+    ("point", [0.0, float("inf"), 1.0], "points has a NaN or inf entry in row 1"),
+    ("point", [1e999, 0.0, 0.0], "points has a NaN or inf entry in row 1"),
+])
+def test_nan_or_inf_in_contacts(field, value, want):
+    bad = dict(GOOD_CONTACTS[1], **{field: value})
+    with raises(ContactsError, want):
+        io.parse_contacts(contacts_doc(GOOD_CONTACTS[0], bad))
+
+
+def test_nan_in_contacts_file(tmp_path):
+    """Python's json reads the non-standard NaN literal; the contact check still rejects it."""
+    path = tmp_path / "c.json"
+    path.write_text('{"contacts": [{"point": [NaN, 0, 0], "finger_normal": [0, 0, 1]},'
+                    ' {"point": [1, 0, 0], "finger_normal": [0, 0, 1]}]}')
+    with raises(ContactsError, "points has a NaN or inf entry in row 0"):
+        io.read_contacts(path)
+
+
+def test_non_unit_normal_is_normalised_with_a_warning():
+    bad = dict(GOOD_CONTACTS[1], finger_normal=[0.0, 0.0, 2.0])
+    contacts, messages = recorded(io.parse_contacts, contacts_doc(GOOD_CONTACTS[0], bad))
+    assert any("1 non-unit normals normalised" in m and "2.0" in m for m in messages), messages
+    np.testing.assert_allclose(contacts.finger_normals[1], [0.0, 0.0, 1.0])
+
+
+@pytest.mark.xfail(strict=True, reason="library: contacts._unit takes np.linalg.norm of [1e308, 1e308, 0], which "
+                   "overflows to inf, and divides by it: the normal silently becomes [0, 0, 0] (with only a "
+                   "'non-unit normals normalised (lengths [inf])' warning); scale rows by their max |entry| before "
+                   "the norm, or reject non-finite norms")
+def test_normal_whose_length_overflows():
+    bad = dict(GOOD_CONTACTS[1], finger_normal=[1e308, 1e308, 0.0])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        try:
+            contacts = io.parse_contacts(contacts_doc(GOOD_CONTACTS[0], bad))
+        except ContactsError:
+            return  # rejecting it is fine too
+    np.testing.assert_allclose(contacts.finger_normals[1], [np.sqrt(0.5), np.sqrt(0.5), 0.0])
+
+
+@pytest.mark.parametrize("contacts,want", [([], "lists no contacts; need at least 2"),
+                                           (GOOD_CONTACTS[:1], "need at least 2 contacts, got 1")])
+def test_fewer_than_two_contacts(contacts, want):
+    with raises(ContactsError, want):
+        io.parse_contacts({"contacts": contacts})
+
+
+def test_duplicate_contacts():
+    with raises(ContactsError, "contacts 0 and 2 are at the same point", "[0.0, 0.0, 0.02]"):
+        io.parse_contacts(contacts_doc(GOOD_CONTACTS[0], GOOD_CONTACTS[1], GOOD_CONTACTS[0]))
+
+
+@pytest.mark.xfail(strict=True, reason="library: contacts._check_duplicates computes distances that overflow to "
+                   "inf for points 2e308 apart; then the scale is inf and 'dist <= 1e-12 * inf' holds, so two "
+                   "distinct contacts are reported 'at the same point'; reject non-finite distances (or absurd "
+                   "coordinates) with their own message")
+def test_far_apart_contacts_are_not_called_duplicates():
+    a = dict(GOOD_CONTACTS[0], point=[0.0, 1e308, 0.0])
+    b = dict(GOOD_CONTACTS[1], point=[0.0, -1e308, 0.0])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        try:
+            io.parse_contacts(contacts_doc(a, b))
+        except ContactsError as exc:
+            assert "same point" not in str(exc)
+
+
+def test_contact_spread_larger_than_object_warns_about_units(box_small):
+    # the contacts of a 0.12 m box given in millimetres
+    mm = Contacts(np.array([c["point"] for c in GOOD_CONTACTS]) * 1000,
+                  finger_normals=[c["finger_normal"] for c in GOOD_CONTACTS])
+    result, messages = recorded(cp.localize, box_small, mm, position_noise=0.0005)
+    assert any("contacts span 53.85" in m and "diameter 0.1233" in m and "same units" in m for m in messages), messages
+    assert result.status == "no_hypothesis" and "wrong units?" in result.hint
+
+
+# ----------------------------------------------------------------- prior files
+
+@pytest.mark.parametrize("pose,want", [
+    (2 * np.eye(4), "prior pose is not rigid: |RᵀR - I| = 3"),
+    (np.diag([1.0, 1.0, -1.0, 1.0]), "det R = -1"),
+    (np.array([[1, 0.1, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]]), "not rigid"),
+    (np.vstack([np.eye(4)[:3], [0, 0, 1, 1]]), "last row must be [0, 0, 0, 1], got [0.0, 0.0, 1.0, 1.0]"),
+])
+def test_prior_pose_not_rigid(pose, want):
+    with raises(PriorError, want):
+        io.parse_prior(dict(GOOD_PRIOR, pose=pose.tolist()))
+
+
+@pytest.mark.parametrize("pose,want", [
+    (np.eye(3).tolist(), "prior pose must be a 4x4 matrix"), ([[1, 0, 0, 0]] * 3 + [[0, 0, 0]], "4x4 matrix"),
+    ([["1", "0", "0", "0"]] * 4, "prior pose must hold only numbers"), (None, "got null"),
+    ([[float("nan")] * 4] * 4, "finite 4x4 matrix"),
+])
+def test_prior_pose_wrong_shape_or_type(pose, want):
+    with raises(PriorError, want):
+        io.parse_prior(dict(GOOD_PRIOR, pose=pose))
+
+
+@pytest.mark.parametrize("key,value", [("sigma_rot_deg", -1.0), ("sigma_trans", -0.01), ("sigma_trans", 0.0),
+                                       ("sigma_rot_deg", float("nan"))])
+def test_prior_negative_or_zero_sigma(key, value):
+    with raises(PriorError, f"prior {key} must be a positive number, got {value!r}"):
+        io.parse_prior(dict(GOOD_PRIOR, **{key: value}))
+
+
+@pytest.mark.parametrize("value,want", [(None, "got null"), ("10", 'got "10"'), (True, "got true"),
+                                        (10 ** 400, "representable as a float")])
+def test_prior_sigma_not_a_number(value, want):
+    with raises(PriorError, "prior sigma_rot_deg must be a number", want):
+        io.parse_prior(dict(GOOD_PRIOR, sigma_rot_deg=value))
+
+
+@pytest.mark.parametrize("cov,want", [(-np.eye(6), "positive definite"), (np.eye(5), "6x6 matrix"),
+                                      (np.triu(np.ones((6, 6))), "symmetric (6, 6)")])
+def test_prior_bad_covariance(cov, want):
+    with raises(PriorError, "prior covariance", want):
+        io.parse_prior({"pose": GOOD_PRIOR["pose"], "covariance": cov.tolist()})
+
+
+def test_prior_with_both_sigmas_and_covariance():
+    with raises(PriorError, "both", "covariance", "sigma_rot_deg"):
+        io.parse_prior(dict(GOOD_PRIOR, covariance=np.eye(6).tolist()))
+
+
+def test_prior_file_invalid_json(tmp_path):
+    path = tmp_path / "p.json"
+    path.write_text('{"pose": [[1, 0, 0, 0]')
+    with raises(PriorError, str(path), "not valid JSON"):
+        io.read_prior(path)
+
+
+def test_prior_file_missing_pose(tmp_path):
+    with raises(PriorError, 'must be an object with "pose"', "sigma_rot_deg"):
+        io.read_prior(write_json(tmp_path / "p.json", {"sigma_rot_deg": 1.0, "sigma_trans": 0.1}))
+
+
+def test_prior_constructor_names_the_defect():
+    with raises(PriorError, "prior sigma_trans must be a positive number, got -1"):
+        PosePrior(np.eye(4), sigma_rot_deg=1.0, sigma_trans=-1)
+
+
+# ----------------------------------------------------------------- model files
+
+def test_model_file_missing(tmp_path):
+    path = str(tmp_path / "none.npz")
+    with raises(ModelFileError, path, "does not exist"):
+        ObjectModel.load(path)
+
+
+@pytest.mark.parametrize("fraction", [0.0, 0.001, 0.25, 0.5, 0.9, 0.999])
+def test_model_file_truncated(tmp_path, box_file, fraction):
+    raw = open(box_file, "rb").read()
+    path = tmp_path / "cut.npz"
+    path.write_bytes(raw[:int(fraction * len(raw))])
+    with raises(ModelFileError, str(path), "truncated, corrupt or not a .npz model"):
+        ObjectModel.load(path)
+
+
+def _member_data_offset(path, name):
+    """Byte offset of the stored data of zip member ``name`` (uncompressed)."""
+    with zipfile.ZipFile(path) as zf:
+        info = zf.getinfo(name)
+    with open(path, "rb") as fh:
+        fh.seek(info.header_offset + 26)
+        n_name, n_extra = np.frombuffer(fh.read(4), "<u2")
+    return info.header_offset + 30 + int(n_name) + int(n_extra)
+
+
+@pytest.mark.parametrize("member", ["vertices.npy", "features_dmax.npy", "table_offsets.npy", "format_version.npy"])
+def test_model_file_corrupted_bytes(tmp_path, box_file, member):
+    """A flipped bit inside any stored array is caught (the zip CRC-32 of the member)."""
+    raw = bytearray(open(box_file, "rb").read())
+    raw[_member_data_offset(box_file, member) + 130] ^= 0x10  # past the 128-byte .npy header
+    path = tmp_path / "flipped.npz"
+    path.write_bytes(bytes(raw))
+    with raises(ModelFileError, str(path), "CRC-32", member):
+        ObjectModel.load(path)
+
+
+def test_model_file_not_a_zip(tmp_path):
+    path = tmp_path / "model.npz"
+    path.write_text("not a model")
+    with raises(ModelFileError, str(path), "not a .npz model"):
+        ObjectModel.load(path)
+
+
+def test_model_file_with_pickled_objects(tmp_path):
+    path = tmp_path / "pickle.npz"
+    np.savez(path, format_version=np.array([{"a": 1}], dtype=object))
+    with raises(ModelFileError, str(path), "allow_pickle=False"):
+        ObjectModel.load(path)
+
+
+@pytest.mark.parametrize("compressed", [False, True])
+def test_model_file_corrupted_compression_field(tmp_path, box_arrays, compressed):
+    """zipfile raises NotImplementedError for an unknown compression method: still a ModelFileError."""
+    path = tmp_path / "model.npz"
+    (np.savez_compressed if compressed else np.savez)(path, **box_arrays)
+    raw = bytearray(path.read_bytes())
+    # zipfile trusts the central directory: compression method of its first entry 0 -> 1 (or 8 -> 9)
+    raw[raw.index(b"PK\x01\x02") + 10] ^= 0x01
+    path.write_bytes(bytes(raw))
+    with raises(ModelFileError, str(path), "compression method"):
+        ObjectModel.load(path)
+
+
+def test_model_file_wrong_format_version(tmp_path, box_arrays):
+    path = rewrite(tmp_path, box_arrays, format_version=np.array(FORMAT_VERSION + 1))
+    with raises(ModelFileError, f"format version {FORMAT_VERSION + 1}", f"reads version {FORMAT_VERSION}",
+                "build-model"):
+        ObjectModel.load(path)
+
+
+@pytest.mark.parametrize("value", [None, np.array("x"), np.zeros((2, 2))])
+def test_model_file_unreadable_format_version(tmp_path, box_arrays, value):
+    with raises(ModelFileError, "no readable format version", "not a contactpose model"):
+        ObjectModel.load(rewrite(tmp_path, box_arrays, format_version=value))
+
+
+@pytest.mark.parametrize("key,change", [
+    ("vertices", lambda a: a + 1e-9), ("features_dmax", lambda a: a[:5]), ("features_k", lambda a: a + 1000),
+    ("table_offsets", lambda a: a[::-1]), ("diameter", lambda a: a * 2), ("features_dmax", lambda a: None),
+])
+def test_model_file_tampered_arrays(tmp_path, box_arrays, key, change):
+    """Any array changed or dropped after saving: the content hash no longer matches."""
+    path = rewrite(tmp_path, box_arrays, **{key: change(box_arrays[key])})
+    with raises(ModelFileError, str(path), "is corrupt", "content hash"):
+        ObjectModel.load(path)
+
+
+@pytest.mark.xfail(strict=True, reason="library: ObjectModel._from_arrays and PairTable/Patches.from_arrays call "
+                   "float()/int() on stored scalars unguarded: a model file whose content hash is valid (a buggy or "
+                   "foreign writer) but whose diameter, table_bins or patches_tol_deg has the wrong type or shape "
+                   "raises a raw ValueError/TypeError (\"could not convert string to float: 'x'\", 'iteration over a "
+                   "0-d array'; check_mesh_arrays: numpy UFuncTypeError on string faces); wrap _from_arrays in a "
+                   "check of each array's dtype and shape")
+@pytest.mark.parametrize("key,value", [("diameter", np.array("x")), ("table_bins", np.array(["a", "b", "c"])),
+                                       ("table_bins", np.array(3)), ("patches_tol_deg", np.array("x")),
+                                       ("faces", np.array([["a", "b", "c"]]))])
+def test_model_file_resigned_scalar_of_wrong_type(tmp_path, box_arrays, key, value):
+    with raises(ModelFileError, "model file"):
+        ObjectModel.load(rewrite(tmp_path, box_arrays, resign=True, **{key: value}))
+
+
+@pytest.mark.xfail(strict=True, reason="library: beyond the mesh hash and the table offsets, nothing checks that a "
+                   "model file's arrays fit together: with a valid content hash, a shorter dmax, facet indices "
+                   "out of range, a missing dmax, or a float 'valid' array all load without error and later give "
+                   "wrong answers, a numba TypingError or out-of-bounds reads in the kernels; check lengths, dtypes "
+                   "and index ranges on load")
+@pytest.mark.parametrize("change", ["dmax_short", "k_out_of_range", "dmax_missing", "valid_float"])
+def test_model_file_resigned_inconsistent_arrays(tmp_path, box_arrays, change):
+    a = box_arrays
+    changes = {"dmax_short": {"features_dmax": a["features_dmax"][:5]},
+               "k_out_of_range": {"features_k": a["features_k"] + 1000},
+               "dmax_missing": {"features_dmax": None},
+               "valid_float": {"valid": np.zeros(3)}}[change]
+    with raises(ModelFileError, "model file"):
+        ObjectModel.load(rewrite(tmp_path, a, resign=True, **changes))
+
+
+def test_model_file_lacks_an_array(tmp_path, box_arrays):
+    with raises(ModelFileError, "lacks the array 'vertices'", "corrupt or not a model"):
+        ObjectModel.load(rewrite(tmp_path, box_arrays, resign=True, vertices=None))
+
+
+def test_model_file_mesh_does_not_match_its_hash(tmp_path, box_arrays):
+    path = rewrite(tmp_path, box_arrays, resign=True, vertices=box_arrays["vertices"] + 1e-9)
+    with raises(ModelFileError, "corrupt", "does not match its stored hash"):
+        ObjectModel.load(path)
+
+
+@pytest.mark.xfail(strict=True, reason="library: model._read_npz memory-maps files of MMAP_MIN_BYTES (256 MiB) or "
+                   "more through _mmap_npz and falls back only on ValueError/OSError/KeyError, so a large file that "
+                   "is not a zip raises a raw zipfile.BadZipFile (and a damaged .npy header a raw "
+                   "tokenize.TokenError); catch Exception there as on the np.load path")
+def test_large_model_file_not_a_zip(tmp_path, monkeypatch):
+    monkeypatch.setattr(model_module, "MMAP_MIN_BYTES", 0)  # treat every file as large
+    path = tmp_path / "model.npz"
+    path.write_text("not a model")
+    with raises(ModelFileError, str(path)):
+        ObjectModel.load(path)
+
+
+@pytest.mark.xfail(strict=True, reason="library: a memory-mapped model (files of 256 MiB or more) crashes its process "
+                   "with SIGBUS when the file is rewritten in place, as ObjectModel.save does (open(path, 'wb') "
+                   "truncates the same inode): rebuilding a model to the path a running process has loaded kills "
+                   "that process; save to a temporary file in the same folder and os.replace() it")
+def test_saving_over_a_memory_mapped_model_does_not_crash_its_reader(tmp_path):
+    script = (
+        "import sys, trimesh; from contactpose import model, objects\n"
+        "model.MMAP_MIN_BYTES = 0\n"
+        "path = sys.argv[1]\n"
+        "model.ObjectModel.from_mesh(objects.load('box'), bins=(4, 4, 4)).save(path)\n"
+        "loaded = model.ObjectModel.load(path)\n"
+        "tetra = trimesh.Trimesh([[0, 0, 0], [.05, 0, 0], [0, .05, 0], [0, 0, .05]],\n"
+        "                        [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]], process=False)\n"
+        "model.ObjectModel.from_mesh(tetra, bins=(1, 1, 1)).save(path)  # a much smaller file, same path\n"
+        "print(float(loaded.features.dmax.sum()), float(loaded.table.offsets.sum()))\n")
+    proc = subprocess.run([sys.executable, "-c", script, str(tmp_path / "m.npz")], capture_output=True, timeout=300)
+    assert proc.returncode == 0, f"reader died with code {proc.returncode}: {proc.stderr.decode()[-300:]}"
+
+
+def test_model_file_built_for_another_mesh(box_file):
+    with raises(ModelFileError, str(box_file), "was built for another mesh", "rebuild"):
+        ObjectModel.load(box_file, mesh=objects.load("rock"))
+
+
+def test_model_file_for_the_same_mesh_loads(box_file, box_mesh):
+    assert ObjectModel.load(box_file, mesh=box_mesh, bins=SMALL_BINS, bounds="exact").num_facets == 48
+
+
+def test_model_file_other_bins(box_file):
+    with raises(ModelFileError, str(box_file), f"built with bins={SMALL_BINS}", "bins=(16, 16, 16) was asked for"):
+        ObjectModel.load(box_file, bins=(16, 16, 16))
+
+
+def test_model_file_other_bounds(box_file):
+    with raises(ModelFileError, str(box_file), "built with bounds='exact'", "bounds='paper' was asked for"):
+        ObjectModel.load(box_file, bounds="paper")
+
+
+@pytest.mark.parametrize("bins", [(0, 4, 4), (4, 4), (4.5, 4, 4), (1, 1, 10 ** 6)])
+def test_bad_bins_asked(box_file, bins):
+    with raises(ContactPoseError, "bins must be three integers in [1, 4096]", repr(bins)):
+        ObjectModel.load(box_file, bins=bins)
+
+
+# ------------------------------------------------------------- resource limits
+
+def _tiny_memory(monkeypatch, available=1 << 20):
+    import psutil
+
+    memory = namedtuple("svmem", "total available percent used free")
+    monkeypatch.setattr(psutil, "virtual_memory",
+                        lambda: memory(available, available, 99.0, 0, available))
+
+
+def test_table_predicted_to_exceed_memory(monkeypatch):
+    _tiny_memory(monkeypatch)
+    with raises(ResourceError, "the pair table for 320 facets", "needs about", "GiB is available", "decimate"):
+        ObjectModel.from_mesh(objects.load("rock"))
+
+
+def test_memory_check_passes_with_enough_memory(monkeypatch):
+    _tiny_memory(monkeypatch, available=1 << 40)
+    assert ObjectModel.from_mesh(objects.load("box"), bins=SMALL_BINS).num_facets == 48
+
+
+# ------------------------------------------------------------------------ CLI
+
+def _cli_cases(tmp, box_file, box_arrays):
+    """(name, argv, message fragment) for a representative subset of bad input."""
+    stl = tmp / "notes.stl"
+    stl.write_text("these are my notes\n")
+    v = objects.load("box").vertices.copy()
+    v[2, 2] = np.nan
+    nan_obj = write_obj(tmp / "nan.obj", v, objects.load("box").faces)
+    bad_json = tmp / "bad.json"
+    bad_json.write_text("{")
+    one = write_json(tmp / "one.json", {"contacts": GOOD_CONTACTS[:1]})
+    both = write_json(tmp / "both.json", contacts_doc(dict(GOOD_CONTACTS[0], object_normal=[0, 0, 1]),
+                                                      GOOD_CONTACTS[1]))
+    good = write_json(tmp / "good.json", contacts_doc())
+    skew = write_json(tmp / "skew.json", dict(GOOD_PRIOR, pose=(2 * np.eye(4)).tolist()))
+    negative = write_json(tmp / "neg.json", dict(GOOD_PRIOR, sigma_trans=-1.0))
+    cut = tmp / "cut.npz"
+    cut.write_bytes(open(box_file, "rb").read()[:500])
+    old = rewrite(tmp, box_arrays, format_version=np.array(FORMAT_VERSION + 1))
+    return [
+        ("missing mesh", ["build-model", str(tmp / "none.stl"), "-o", str(tmp / "o.npz")], "does not exist"),
+        ("text .stl", ["build-model", str(stl), "-o", str(tmp / "o.npz")], "faces"),
+        ("NaN vertex", ["build-model", nan_obj, "-o", str(tmp / "o.npz")], "non-finite"),
+        ("bad bins", ["build-model", "box", "--bins", "0", "4", "4", "-o", str(tmp / "o.npz")], "bins must be"),
+        ("invalid JSON", ["localize", box_file, "--contacts", str(bad_json)], "not valid JSON"),
+        ("missing contacts", ["localize", box_file, "--contacts", str(tmp / "none.json")], "does not exist"),
+        ("one contact", ["localize", box_file, "--contacts", one], "need at least 2 contacts"),
+        ("both normals", ["localize", box_file, "--contacts", both], "exactly one of"),
+        ("non-rigid prior", ["localize", box_file, "--contacts", good, "--prior", skew], "not rigid"),
+        ("negative sigma", ["localize", box_file, "--contacts", good, "--prior", negative], "positive number"),
+        ("truncated model", ["localize", str(cut), "--contacts", good], "truncated"),
+        ("model version", ["localize", old, "--contacts", good], "format version"),
+        ("bad noise", ["localize", box_file, "--contacts", good, "--position-noise", "-1"], "positive number"),
+    ]
+
+
+def test_cli_bad_input_exits_2_with_one_line(tmp_path, box_file, box_arrays, capsys, monkeypatch):
+    monkeypatch.setattr(warnings, "showwarning", warnings.showwarning)  # main() replaces it
+    for name, argv, fragment in _cli_cases(tmp_path, box_file, box_arrays):
+        code = cli.main(argv)
+        out, err = capsys.readouterr()
+        lines = err.splitlines()
+        assert code == 2, (name, code, err)
+        assert len(lines) == 1 and lines[0].startswith("contactpose: error: "), (name, err)
+        assert fragment in lines[0] and "Traceback" not in err, (name, err)
+        assert out == "", (name, out)
+
+
+def test_cli_resource_limit_exits_2(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(warnings, "showwarning", warnings.showwarning)
+    _tiny_memory(monkeypatch)
+    assert cli.main(["build-model", "rock", "-o", str(tmp_path / "rock.npz")]) == 2
+    err = capsys.readouterr().err
+    assert len(err.splitlines()) == 1 and "needs about" in err and "Traceback" not in err
+
+
+def test_cli_debug_reraises(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(warnings, "showwarning", warnings.showwarning)
+    with pytest.raises(MeshError):
+        cli.main(["--debug", "build-model", str(tmp_path / "none.stl")])
+
+
+def test_cli_units_warning_is_one_line(tmp_path, box_file, capsys, monkeypatch):
+    monkeypatch.setattr(warnings, "showwarning", warnings.showwarning)
+    far = write_json(tmp_path / "far.json", {"contacts": [
+        {"point": [0, 0, 0], "finger_normal": [0, 0, 1]}, {"point": [1, 0, 0], "finger_normal": [0, 0, 1]}]})
+    assert cli.main(["localize", box_file, "--contacts", far]) == 0
+    out, err = capsys.readouterr()
+    assert re.fullmatch(r"contactpose: warning: contacts span 1, .* same units\?\n", err), err
+    assert "status: no_hypothesis (contacts are 1 apart" in out and "wrong units?" in out

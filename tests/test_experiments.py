@@ -1,0 +1,127 @@
+"""The quick versions of the experiments (what `make results-quick` runs), into a tmp dir:
+CSV, figures and config are written, and the CSV is identical bit for bit across runs and
+across 1 and 2 Dask workers."""
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from contactpose import sweep
+
+EXPERIMENTS = Path(__file__).resolve().parent.parent / "experiments"
+sys.path.insert(0, str(EXPERIMENTS))
+import run_all  # noqa: E402
+
+OUTPUTS = ("results.csv", "timings.csv", "config.json", "run.json")
+
+
+def run(name, out, *extra):
+    assert run_all.load(name).main(["--quick", "--fresh", "--out", str(out), *extra]) == 0
+    return out / name
+
+
+def check_outputs(directory, stems):
+    for f in OUTPUTS:
+        assert (directory / f).stat().st_size > 0, f
+    for stem in stems:
+        for ext in ("png", "pdf"):
+            assert (directory / f"{stem}.{ext}").stat().st_size > 1000, f"{stem}.{ext}"
+
+
+def test_noise_sweep_quick_identical_on_one_and_two_workers(tmp_path):
+    one = run("noise_sweep", tmp_path / "one", "--workers", "1")
+    two = run("noise_sweep", tmp_path / "two", "--workers", "2")
+    check_outputs(one, ["noise_sweep", "noise_sweep_solvers"])
+    assert (one / "results.csv").read_bytes() == (two / "results.csv").read_bytes()
+    assert sweep.read_run(one)["workers"] == 1 and sweep.read_run(two)["workers"] == 2
+    rows = sweep.read_rows(one / "results.csv")
+    assert {r["variant"] for r in rows} >= {"fast/closed-form", "paper/lm"}
+    assert not any(k.startswith("time_") for k in rows[0])
+
+
+def test_fingers_and_bins_quick_identical_across_runs_and_redrawn(tmp_path):
+    first = run("fingers_sweep", tmp_path / "a", "--workers", "0")
+    second = run("fingers_sweep", tmp_path / "b", "--workers", "0")
+    check_outputs(first, ["fingers_sweep"])
+    assert (first / "results.csv").read_bytes() == (second / "results.csv").read_bytes()
+    bins = run("bin_sweep", tmp_path / "a", "--workers", "0")
+    check_outputs(bins, ["bin_sweep"])
+    c = sweep.read_columns(bins / "results.csv")
+    assert np.all(c["candidates"] >= c["admissible"]) and len(set(c["admissible"])) <= int(c["grasp"].max()) + 1
+    # figures come from the CSV alone
+    (bins / "bin_sweep.png").unlink()
+    assert run_all.load("bin_sweep").main(["--quick", "--plot-only", "--out", str(tmp_path / "a")]) == 0
+    assert (bins / "bin_sweep.png").exists()
+
+
+def test_candidate_count_matches_brute_force():
+    """bin_sweep.candidate_count counts exactly the stored pairs whose bins eq. (5) visits."""
+    from contactpose import objects, simulate
+    from contactpose.contacts import Tolerance, pair_conditions
+    from contactpose.model import ObjectModel
+    from contactpose.table import bin_index, query_limits
+
+    bin_sweep = run_all.load("bin_sweep")
+    model = ObjectModel.from_mesh(objects.load("box"), bins=(8, 8, 16))
+    t, f = model.table, model.features
+    tolerance = Tolerance.from_noise(0.0005, 1.0)
+    g = simulate.grasp(model, np.random.default_rng(3), n=4, position_noise=0.0005, normal_noise_deg=1.0)
+    cond = pair_conditions(g.contacts)
+    key = [bin_index(v, t.mins[i], t.widths[i], t.bins[i]) for i, v in enumerate((f.dmax, f.dmin("exact"), f.alpha))]
+    want = 0
+    for d, a in zip(cond.distance, cond.angle):
+        lo_d, hi_d, lo_a, hi_a = query_limits(d, a, tolerance.distance, tolerance.angle)
+        a0 = bin_index(lo_d, t.mins[0], t.widths[0], t.bins[0])
+        b1 = bin_index(hi_d, t.mins[1], t.widths[1], t.bins[1])
+        c0 = bin_index(lo_a - t.alpha_width, t.mins[2], t.widths[2], t.bins[2])
+        c1 = bin_index(hi_a, t.mins[2], t.widths[2], t.bins[2])
+        want += int(np.sum((key[0] >= a0) & (key[1] <= b1) & (key[2] >= c0) & (key[2] <= c1)))
+    assert bin_sweep.candidate_count(t, cond, tolerance) == want
+
+
+def test_scaling_meshes_are_closed_rocks_of_20_f2_facets():
+    scaling = run_all.load("scaling")
+    for f in (2, 3, 5):
+        mesh = scaling.rock_mesh(f)
+        assert len(mesh.faces) == 20 * f * f
+        assert mesh.is_watertight and mesh.is_winding_consistent and mesh.volume > 0
+        assert np.isclose(np.ptp(mesh.vertices, axis=0).max(), 0.12)
+    assert np.array_equal(scaling.rock_mesh(3).vertices, scaling.rock_mesh(3).vertices)
+
+
+@pytest.mark.parametrize("name", ["banana", "carton"])
+def test_baseline_contact_cost_is_chi2_at_the_true_pose(name):
+    """The baselines' likelihood finds each contact's own facet: χ² of 12 dof at the truth."""
+    from contactpose import baselines, objects, simulate
+    from contactpose.model import ObjectModel
+
+    model = ObjectModel.from_mesh(objects.load(name))
+    surface = baselines.sample_surface(model)
+    costs = []
+    for seed in range(60):
+        g = simulate.grasp(model, np.random.default_rng(seed), n=4, position_noise=0.0005, normal_noise_deg=1.0)
+        costs.append(baselines.contact_cost(model, surface, g.contacts, g.pose[None], 0.0005, 1.0)[0])
+    assert 8 < np.median(costs) < 14 and max(costs) < 45   # χ²(12): median 11.3, 99.9 % 32.9
+
+
+def test_scaling_series_and_icp_improve_on_a_close_prior():
+    from contactpose import baselines, metrics, objects, simulate
+    from contactpose.localize import PosePrior
+    from contactpose.model import ObjectModel
+
+    model = ObjectModel.from_mesh(objects.load("banana"))
+    surface = baselines.sample_surface(model)
+    target = baselines.icp_target(surface, 5000)
+    rng = np.random.default_rng(1)
+    g = simulate.grasp(model, rng, n=4, position_noise=0.0005, normal_noise_deg=1.0)
+    start = g.pose.copy()
+    start[:3, 3] += 0.004
+    noise = dict(position_noise=0.0005, normal_noise_deg=1.0)
+    icp = baselines.icp(model, surface, target, g.contacts, start, **noise)
+    ss = baselines.scaling_series(model, surface, g.contacts, rng, prior=PosePrior(start, 3.0, 0.004), initial=500,
+                                  per_ball=16, max_particles=500, **noise)
+    for r in (icp, ss):
+        assert metrics.translation_error(r.pose, g.pose) < 0.004
+        assert r.cost < baselines.contact_cost(model, surface, g.contacts, start[None], **noise)[0]
