@@ -33,6 +33,9 @@ touches, suggested (``touch.suggest_touch``) or random (a random candidate probe
 the true pose with the same noise and added to the contacts. A probe that touches nothing
 adds no contact; the classes that predicted a contact for it are then counted as ruled out.
 
+``*_ms`` columns time a stage with its ranking and class grouping (``patches_ms``:
+localize's total).
+
 Writes results/discrimination/: grasps.csv (one row per grasp), summary.csv (mesh x stage),
 touch.csv (one row per ambiguous grasp and strategy), touch_summary.csv, config.json,
 counts.png/pdf and touch.png/pdf (drawn from the CSVs alone)::
@@ -382,8 +385,9 @@ def plot(out):
     ax.set_xticks(x)
     ax.set_xticklabels([f"{m}\n(n={n[m]})" for m in meshes])
     ax.set_ylabel("ambiguous grasps resolved to one class")
-    ax.set_ylim(0, 1)
-    ax.legend(fontsize=8)
+    ax.set_ylim(0, 1.2)
+    ax.set_yticks(np.linspace(0, 1, 6))
+    ax.legend(fontsize=8, ncol=4, loc="upper center")
     ax.set_title("Extra touches after a 4-contact grasp left >= 2 pose classes")
     fig.tight_layout()
     for ext in ("png", "pdf"):
