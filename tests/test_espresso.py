@@ -98,7 +98,8 @@ def test_is_cloud_file_by_suffix_and_ply_faces(tmp_path, banana_cloud):
     mesh_ply = tmp_path / "mesh.ply"
     objects.load("banana").export(mesh_ply)
     np.save(tmp_path / "cloud.npy", points)
-    assert o3d.io.write_point_cloud(str(tmp_path / "cloud.pcd"), o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)))
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+    assert o3d.io.write_point_cloud(str(tmp_path / "cloud.pcd"), pcd)
     assert is_cloud_file(cloud_ply) and ply_face_count(cloud_ply) == 0
     assert not is_cloud_file(mesh_ply) and ply_face_count(mesh_ply) == 53
     assert is_cloud_file(tmp_path / "cloud.npy") and is_cloud_file(tmp_path / "cloud.pcd")
@@ -107,7 +108,6 @@ def test_is_cloud_file_by_suffix_and_ply_faces(tmp_path, banana_cloud):
     garbage.write_bytes(b"not a ply file")
     assert ply_face_count(garbage) is None and not is_cloud_file(garbage)  # the mesh loader reports it
     ascii_cloud = tmp_path / "ascii.ply"
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     assert o3d.io.write_point_cloud(str(ascii_cloud), pcd, write_ascii=True)
     assert is_cloud_file(ascii_cloud)
 
