@@ -26,6 +26,12 @@ random stream of existing cells (resume stays valid). ``seed_axes`` pairs cells:
 ``seed_axes=("object",)``, two cells that differ only in, say, the method get the same
 grasps.
 
+Execution: ``workers=None`` starts a LocalCluster with one worker process per CPU,
+``threads_per_worker=1`` (numba, BLAS and OpenMP held to one thread per task);
+``workers=0`` runs the cells in the calling process without Dask (debugging, profiling);
+``scheduler=...`` uses an existing cluster. A failed cell is logged and reported at the end
+(SweepError) after the others have finished and been written; a rerun retries it.
+
 Task contract: ``task(settings, rng) -> dict | list[dict]``; ``settings`` is the cell's
 settings plus ``"seed"``. Rows are flat dicts of str, int, float, bool or None. Bind
 fixed configuration with :func:`functools.partial`. Tasks defined in scripts are sent to
@@ -46,6 +52,7 @@ import math
 import os
 import sys
 import time
+import traceback
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -60,10 +67,13 @@ RESULTS_CSV = "results.csv"
 TIMINGS_CSV = "timings.csv"
 CONFIG_JSON = "config.json"
 RUN_JSON = "run.json"
-#: Environment of LocalCluster workers: one thread each for BLAS, OpenMP (Open3D) and numba,
-#: so n workers use n cores and results do not depend on thread counts.
-WORKER_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
-              "NUMBA_NUM_THREADS": "1"}
+#: Environment of LocalCluster workers: one thread each for BLAS and OpenMP (Open3D), so n
+#: workers use n cores and results do not depend on thread counts. (Dask also sets these
+#: before spawning.) numba gets one thread per task from numba.set_num_threads in the
+#: worker, not from NUMBA_NUM_THREADS: a script's imports run in the spawned worker before
+#: the Nanny's environment is applied, and numba refuses a changed NUMBA_NUM_THREADS once
+#: its threads run.
+WORKER_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 #: Reserved leading columns of every row.
 CELL_COLUMN = "cell"
 SEED_COLUMN = "seed"
@@ -284,10 +294,18 @@ def _call(runner, cell):
     try:
         return runner(cell), None
     except Exception as exc:  # a failed cell is reported, the others go on
-        return None, f"{type(exc).__name__}: {exc}"
+        where = traceback.extract_tb(exc.__traceback__)[-1]
+        return None, f"{type(exc).__name__}: {exc} (at {Path(where.filename).name}:{where.lineno})"
 
 
 def _call_pickled(payload, cell):
+    """Worker side: one numba thread per task (threads_per_worker=1), then the cell."""
+    try:
+        import numba
+
+        numba.set_num_threads(1)
+    except ImportError:
+        pass
     return _call(lambda c: _unpickled(payload)(c), cell)
 
 
@@ -316,7 +334,7 @@ def _dask_completed(runner, pending, workers, scheduler):
         if n < 1:
             raise SweepError(f"workers must be >= 1 for a LocalCluster (0 runs in-process), got {workers}")
         cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=":0",
-                               silence_logs=logging.ERROR, env=WORKER_ENV)
+                               silence_logs=logging.CRITICAL, env=WORKER_ENV)
         client = Client(cluster)
     n_workers = len(client.scheduler_info()["workers"]) if scheduler else n
 
@@ -509,7 +527,12 @@ ROOT = Path(__file__).resolve().parent.parent
 def setup_logging(*names):
     """INFO messages of the sweep runner and the named loggers on stderr; others at WARNING."""
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
-    logging.getLogger("distributed").setLevel(logging.ERROR)  # cluster start/stop chatter
+    # cluster start/stop chatter (failed cells are reported by the runner itself); distributed
+    # sets its loggers' levels when imported, so import it first
+    import distributed  # noqa: F401
+
+    for name in ["distributed", *[n for n in logging.root.manager.loggerDict if n.startswith("distributed.")]]:
+        logging.getLogger(name).setLevel(logging.CRITICAL)
     for name in (__name__, *names):
         logging.getLogger(name).setLevel(logging.INFO)
 
@@ -567,15 +590,18 @@ COLUMN_WIDTH = 3.5
 PAGE_WIDTH = 7.16
 
 
-def plain_log_axis(ax, axis="y"):
-    """Log axis with plain numbers (0.5, 2, 100) instead of powers of ten."""
+def plain_log_axis(ax, axis="y", subs=None):
+    """Log axis with plain numbers (0.5, 2, 100) instead of powers of ten; ticks at 1-2-5
+    over short ranges, else at powers of ten (or at ``subs`` of each decade)."""
     from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
     target = ax.yaxis if axis == "y" else ax.xaxis
     lo, hi = sorted(ax.get_ylim() if axis == "y" else ax.get_xlim())
     decades = np.log10(hi / lo) if lo > 0 else 9
     # 1-2-5 ticks over a short range, powers of ten over a long one
-    target.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0) if decades < 3 else (1.0,)))
+    if subs is None:
+        subs = (1.0, 2.0, 5.0) if decades < 3 else (1.0,)
+    target.set_major_locator(LogLocator(base=10, subs=subs))
     target.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
     target.set_minor_formatter(NullFormatter())
 

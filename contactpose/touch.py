@@ -379,6 +379,8 @@ def suggest_touch(model, result, candidates=None, *, rng, contacts=None, n_candi
     if not (np.isfinite(separation) and separation > 0):
         raise ContactPoseError(f"separation must be a positive number, got {separation!r}")
     poses, prob, ranks = class_poses(model, result, prior)
+    if len(poses) == 1:
+        log.debug("one pose class: no probe can tell classes apart (gain 0)")
     member_poses, owner = _members(model, result, poses, ranks, contacts)
     if candidates is None:
         origins, directions, _ = candidate_probes(model, poses, rng, n_candidates, standoff)

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from contactpose import objects, simulate, sweep, tol
+from contactpose import objects, simulate, sweep
 from contactpose.contacts import Tolerance, pair_conditions
 from contactpose.model import ObjectModel
 from contactpose.table import bin_index, query_limits

@@ -141,14 +141,15 @@ def plot(csv_path, png_path):
     tests = sorted({r["test"] for r in rows})
     kinds = sorted({r["outcome"] for r in rows}, key=lambda k: (k != "result", k))
     counts = {(r["test"], r["outcome"]): int(r["count"]) for r in rows}
-    fig, ax = plt.subplots(figsize=(9, 0.45 * len(tests) + 1.5))
+    fig, ax = plt.subplots(figsize=(12, 0.45 * len(tests) + 1.5))
+    colours = plt.get_cmap("tab20").colors
     left = [0] * len(tests)
-    for kind in kinds:
+    for i, kind in enumerate(kinds):
         widths = [counts.get((t, kind), 0) for t in tests]
-        ax.barh(tests, widths, left=left, label=kind)
+        ax.barh(tests, widths, left=left, label=kind, color=colours[i % len(colours)])
         left = [a + b for a, b in zip(left, widths)]
     ax.set_xlabel("fuzzed inputs")
-    ax.legend(fontsize=7, loc="lower right")
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))
     ax.set_title("fuzzing outcomes per target (known:/uncaught: are uncaught exceptions)", fontsize=9)
     fig.tight_layout()
     fig.savefig(png_path, dpi=120)

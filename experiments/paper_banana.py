@@ -194,11 +194,13 @@ def plot(out_dir):
         ax2.set_xticks([0, 1, 2], ["ours\npaper", "ours\nfast", "paper\n(reported)"])
         ax2.set_xlim(-0.5, 2.5)
         ax2.set_ylabel("online time per grasp (ms)")
-        ax2.legend(loc="lower left", frameon=False)
+        ax2.legend(loc="upper center", bbox_to_anchor=(0.5, -0.2), ncol=1, frameon=False)
+        sweep.plain_log_axis(ax1)
+        sweep.plain_log_axis(ax2)
         succ = " · ".join(f"{m}: success {s[m]['success']:.0%}" for m in ("paper", "fast") if m in s)
         ax2.set_title(succ)
         cpu = machine.get("cpu", "this machine")
-        fig.text(0.01, -0.1, f"ours: {cpu} ({machine.get('cores', '?')} cores, one worker); paper: {PAPER_MACHINE}",
+        fig.text(0.01, -0.02, f"ours: {cpu} ({machine.get('cores', '?')} cores, one worker); paper: {PAPER_MACHINE}",
                  fontsize=6, ha="left", va="top")
         fig.tight_layout()
         paths = sweep.save_figure(fig, out, NAME)

@@ -24,11 +24,11 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 #: Experiment scripts in run order, with estimated minutes (full, quick) on 2 shared cores.
 EXPERIMENTS = {
-    "paper_banana": (1.5, 0.4),
-    "noise_sweep": (9.0, 0.5),
-    "bin_sweep": (3.0, 0.3),
-    "fingers_sweep": (2.0, 0.3),
-    "scaling": (9.0, 0.4),
+    "paper_banana": (1.0, 0.4),
+    "noise_sweep": (7.0, 0.5),
+    "bin_sweep": (3.5, 0.3),
+    "fingers_sweep": (2.5, 0.4),
+    "scaling": (8.0, 0.5),
     "baselines": (9.0, 0.6),
 }
 

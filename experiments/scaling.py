@@ -5,9 +5,12 @@ Meshes: star-shaped rocks of increasing resolution, built here deterministically
 random radial field (the same field for every f, so only the resolution changes), scaled
 to ``size``. Per mesh: the model is built ``build_repeats`` times with exact bounds (the
 default method) and with the paper's vertex-only bounds (median times); then ``grasps``
-random 4-finger grasps (0.5 mm, 1°, bounded noise) are localized with method "fast", and
-with method "paper" while m ≤ paper_max_facets and its closed-form search stays within
-``paper_cap`` hypotheses (its LM costs about 10 ms per hypothesis).
+random 4-finger grasps (``grasps_large`` above ``large_facets``; bounded noise) are
+localized with method "fast", and with method "paper" while m ≤ paper_max_facets and its
+closed-form search stays within ``paper_cap`` hypotheses (its LM costs 10–50 ms per
+hypothesis). Two noise levels: "fine" (0.1 mm, 0.25°) on every mesh, and "default"
+(0.5 mm, 1°) up to ``default_max_facets``: beyond it the facets are smaller than the
+tolerance and the hypothesis count explodes (5.5 million on one m = 3,920 grasp, 400 s).
 
 The paper's points: banana, m = 53: 40 ms offline, 116 ms online (Sun Ultra II); espresso
 machine, m = 6,767: searched only with per-finger restrictions (no time reported).
@@ -19,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import functools
+import json
 import logging
 import sys
 from pathlib import Path
@@ -81,39 +85,46 @@ def rock_mesh(freq, size=0.12, seed=SHAPE_SEED, waves=12, max_freq=4.0, amplitud
     return trimesh.Trimesh(verts, faces, process=False)
 
 
-def task(settings, rng, *, cfg):
-    f = settings["frequency"]
-    mesh = rock_mesh(f, cfg["size"])
-    warm = sweep.cached("warm", lambda: ObjectModel.from_mesh(rock_mesh(2, cfg["size"])))
-    for method in ("fast", "paper"):  # load numba kernels before timing
-        g = simulate.grasp(warm, np.random.default_rng(0), n=4, position_noise=cfg["position_noise"],
-                           normal_noise_deg=cfg["normal_noise_deg"], noise="bounded")
-        localize(warm, g.contacts, position_noise=cfg["position_noise"], normal_noise_deg=cfg["normal_noise_deg"],
-                 method=method)
+def warm_up(cfg):
+    """Load numba's kernels before timing: build a small rock and localize on it with both methods."""
+    model = ObjectModel.from_mesh(rock_mesh(2, cfg["size"]))
+    sx, sn = cfg["noise"]["default"]
+    g = simulate.grasp(model, np.random.default_rng(0), n=4, position_noise=sx, normal_noise_deg=sn, noise="bounded")
+    for method in ("fast", "paper"):
+        localize(model, g.contacts, position_noise=sx, normal_noise_deg=sn, method=method)
+    return model
+
+
+def offline(mesh, cfg):
     rows = []
+    repeats = cfg["build_repeats"] if len(mesh.faces) <= cfg["large_facets"] else cfg["build_repeats_large"]
     for bounds in ("exact", "paper"):
         builds = []
-        repeats = cfg["build_repeats"] if len(mesh.faces) <= cfg["large_facets"] else cfg["build_repeats_large"]
         for _ in range(repeats):
             model = ObjectModel.from_mesh(mesh, bounds=bounds)
             builds.append(model.build_seconds)
-        rows.append({"part": "offline", "bounds": bounds, "method": "", "grasp": -1, "facets": model.num_facets,
+        rows.append({"bounds": bounds, "method": "", "grasp": -1, "facets": model.num_facets,
                      "ordered_pairs": model.num_pairs, **{f"time_{k}_ms": 1e3 * float(np.median([b[k] for b in builds]))
                                                            for k in ("features", "table", "total")}})
+    return rows
+
+
+def online(mesh, rng, noise, cfg):
     model = ObjectModel.from_mesh(mesh)
-    for gi in range(cfg["grasps"]):
-        g = simulate.grasp(model, rng, n=4, position_noise=cfg["position_noise"], normal_noise_deg=cfg["normal_noise_deg"],
-                           noise="bounded")
+    sx, sn = cfg["noise"][noise]
+    grasps = cfg["grasps"] if model.num_facets <= cfg["large_facets"] else cfg["grasps_large"]
+    rows = []
+    for gi in range(grasps):
+        g = simulate.grasp(model, rng, n=4, position_noise=sx, normal_noise_deg=sn, noise="bounded")
         count = None
         for method, solver in (("fast", "closed-form"), ("paper", "closed-form"), ("paper", "lm")):
-            row = {"part": "online", "bounds": "exact", "method": f"{method}/{solver}", "grasp": gi,
-                   "facets": model.num_facets, "ordered_pairs": model.num_pairs}
+            row = {"bounds": "exact", "method": f"{method}/{solver}", "grasp": gi, "facets": model.num_facets,
+                   "ordered_pairs": model.num_pairs}
             if method == "paper" and (model.num_facets > cfg["paper_max_facets"]
                                       or (solver == "lm" and count > cfg["paper_cap"])):
                 rows.append({**row, "ran": False})
                 continue
-            r = localize(model, g.contacts, position_noise=cfg["position_noise"],
-                         normal_noise_deg=cfg["normal_noise_deg"], method=method, solver=solver)
+            r = localize(model, g.contacts, position_noise=sx, normal_noise_deg=sn, method=method, solver=solver)
             if method == "paper":
                 count = r.num_hypotheses
             found = r.hypotheses.arrays.facets
@@ -123,9 +134,30 @@ def task(settings, rng, *, cfg):
     return rows
 
 
+def task(settings, rng, *, cfg):
+    sweep.cached("warm", lambda: warm_up(cfg))
+    mesh = rock_mesh(settings["frequency"], cfg["size"])
+    if settings["part"] == "offline":
+        return offline(mesh, cfg)
+    return online(mesh, rng, settings["noise"], cfg)
+
+
+def grid(cfg):
+    """Offline builds per mesh; online runs per mesh and noise level (default noise up to
+    default_max_facets, where the hypothesis count stays tractable)."""
+    cells = []
+    for f in cfg["frequencies"]:
+        cells.append({"frequency": f, "part": "offline", "noise": ""})
+        for noise in cfg["noise"]:
+            if noise == "default" and 20 * f * f > cfg["default_max_facets"]:
+                continue
+            cells.append({"frequency": f, "part": "online", "noise": noise})
+    return cells
+
+
 def make_sweep(cfg):
-    return sweep.Sweep(NAME, functools.partial(task, cfg=cfg), {"frequency": cfg["frequencies"]}, seeds=1,
-                       base_seed=cfg["base_seed"], config=cfg)
+    return sweep.Sweep(NAME, functools.partial(task, cfg=cfg), grid(cfg), seeds=1, base_seed=cfg["base_seed"],
+                       seed_axes=("frequency", "noise"), config=cfg)
 
 
 # --------------------------------------------------------------------------- figure
@@ -136,6 +168,15 @@ def slope(m, t):
     return float(np.polyfit(np.log(m[ok]), np.log(t[ok]), 1)[0]) if ok.sum() >= 2 else np.nan
 
 
+def online_curve(c, method, noise, col="time_total_ms", stat=np.median):
+    """(m, statistic, p10, p90) of an online column over the grasps that ran."""
+    sel = (c["part"] == "online") & (c["method"] == method) & (c["noise"] == noise) & (c["ran"] == 1)
+    m = np.unique(c["facets"][sel])
+    vals = [c[col][sel & (c["facets"] == v)] for v in m]
+    return (m, np.array([stat(v) for v in vals]), np.array([np.percentile(v, 10) for v in vals]),
+            np.array([np.percentile(v, 90) for v in vals]))
+
+
 def plot(out_dir):
     import matplotlib
 
@@ -144,39 +185,48 @@ def plot(out_dir):
 
     out = Path(out_dir)
     c = sweep.read_columns(out / sweep.TIMINGS_CSV)
+    cfg = json.loads((out / sweep.CONFIG_JSON).read_text())["config"]
     ms = np.unique(c["facets"])
+    noise_label = {k: f"{v[0] * 1e3:g} mm, {v[1]:g}°" + (" (dashed)" if k == "default" else "")
+                   for k, v in cfg["noise"].items()}
+    styles = {"fine": "-", "default": "--"}
     with plt.rc_context(sweep.PAPER_RC):
-        fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(sweep.PAGE_WIDTH, 2.6))
+        fig, (ax1, ax2, ax3) = plt.subplots(1, 3, figsize=(sweep.PAGE_WIDTH, 3.3))
         for bounds, color, label in (("exact", "tab:blue", "exact Δmin (default)"), ("paper", "tab:orange", "vertex-only Δmin (paper)")):
             sel = (c["part"] == "offline") & (c["bounds"] == bounds)
             m, t = c["facets"][sel], c["time_total_ms"][sel]
             ax1.plot(m, t, "-o", color=color, ms=3, label=f"{label}, slope {slope(m, t):.2f}")
         ax1.plot([PAPER_BANANA["m"]], [PAPER_BANANA["offline_ms"]], "*", color="k", ms=8, label="paper: banana (Sun Ultra II)")
         ax1.set_ylabel("offline build time (ms)")
-        for method, color, label in (("fast/closed-form", "tab:blue", "method fast"), ("paper/lm", "tab:orange", "method paper (LM)"),
-                                     ("paper/closed-form", "tab:green", "paper search + closed form")):
-            sel = (c["part"] == "online") & (c["method"] == method) & (c["ran"] == 1)
-            if not sel.any():
-                continue
-            m = np.unique(c["facets"][sel])
-            med = np.array([np.median(c["time_total_ms"][sel & (c["facets"] == v)]) for v in m])
-            lo = np.array([np.percentile(c["time_total_ms"][sel & (c["facets"] == v)], 10) for v in m])
-            hi = np.array([np.percentile(c["time_total_ms"][sel & (c["facets"] == v)], 90) for v in m])
-            ax2.plot(m, med, "-o", color=color, ms=3, label=f"{label}, slope {slope(m, med):.2f}")
-            ax2.fill_between(m, lo, hi, color=color, alpha=0.15, lw=0)
+        ax1.set_title("offline: pair features + table")
+        for noise in cfg["noise"]:
+            for method, color, label in (("fast/closed-form", "tab:blue", "fast"), ("paper/lm", "tab:orange", "paper (LM)")):
+                m, med, lo, hi = online_curve(c, method, noise)
+                if not len(m):
+                    continue
+                ax2.plot(m, med, styles[noise] + "o", color=color, ms=3,
+                         label=f"{label}, {noise_label[noise]}, slope {slope(m, med):.2f}")
+                ax2.fill_between(m, lo, hi, color=color, alpha=0.12, lw=0)
+                mh, hmed, _, _ = online_curve(c, method.replace("/lm", "/closed-form"), noise, "hypotheses")
+                if method.startswith("fast") or noise == "default":
+                    ax3.plot(mh, np.maximum(hmed, 0.8), styles[noise] + "o", color=color, ms=3,
+                             label=f"{label.split(' ')[0]} search, {noise_label[noise]}")
         ax2.plot([PAPER_BANANA["m"]], [PAPER_BANANA["online_ms"]], "*", color="k", ms=8, label="paper: banana (Sun Ultra II)")
-        ax2.set_ylabel("online time per grasp (ms; median, 10–90 %)")
-        for ax in (ax1, ax2):
+        ax2.set_ylabel("online time per grasp (ms)")
+        ax2.set_title("online: median, 10–90 % band")
+        ax3.set_ylabel("median hypotheses per grasp")
+        ax3.set_title("hypotheses")
+        for ax in (ax1, ax2, ax3):
             ax.axvline(PAPER_ESPRESSO_M, color="0.4", ls=":", lw=0.8)
-            ax.text(PAPER_ESPRESSO_M, 0.03, " paper: espresso,\n m = 6,767, only with\n per-finger restrictions",
-                    transform=ax.get_xaxis_transform(), fontsize=5.5, ha="right", va="bottom", color="0.3")
             ax.set_xscale("log")
             ax.set_yscale("log")
             ax.set_xlabel("facets m")
             ax.set_xlim(min(40, ms.min() * 0.8), max(PAPER_ESPRESSO_M * 1.5, ms.max() * 1.3))
-            sweep.plain_log_axis(ax, "x")
+            sweep.plain_log_axis(ax, "x", subs=(1.0,))
             sweep.plain_log_axis(ax, "y")
-            ax.legend(loc="upper left", frameon=False)
+            ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.2), frameon=False, fontsize=5.5)
+        ax1.text(PAPER_ESPRESSO_M, 0.97, "paper: espresso, m = 6,767,\nonly with per-finger\nrestrictions ",
+                 transform=ax1.get_xaxis_transform(), fontsize=5.5, ha="right", va="top", color="0.3")
         fig.tight_layout()
         paths = sweep.save_figure(fig, out, NAME)
         plt.close(fig)
@@ -189,10 +239,14 @@ def summary(out_dir):
     for m in np.unique(c["facets"]):
         s = c["facets"] == m
         off = {b: c["time_total_ms"][s & (c["part"] == "offline") & (c["bounds"] == b)] for b in ("exact", "paper")}
-        on = {v: c["time_total_ms"][s & (c["method"] == v) & (c["ran"] == 1)] for v in ("fast/closed-form", "paper/lm")}
-        lines.append(f"m={int(m):6d}: build exact {off['exact'][0]:9.1f} ms, paper bounds {off['paper'][0]:9.1f} ms | "
-                     f"online fast median {np.median(on['fast/closed-form']):8.2f} ms, paper/lm "
-                     + (f"{np.median(on['paper/lm']):8.1f} ms ({len(on['paper/lm'])} grasps)" if len(on["paper/lm"]) else "not run"))
+        line = f"m={int(m):6d}: build exact {off['exact'][0]:9.1f} ms, paper bounds {off['paper'][0]:9.1f} ms |"
+        for noise in dict.fromkeys(c["noise"][c["part"] == "online"]):
+            for v in ("fast/closed-form", "paper/lm"):
+                sel = s & (c["method"] == v) & (c["noise"] == noise) & (c["ran"] == 1)
+                if sel.any():
+                    line += (f" {noise} {v.split('/')[0]} {np.median(c['time_total_ms'][sel]):.1f} ms"
+                             f" (H {np.median(c['hypotheses'][sel]):.0f}, n={sel.sum()});")
+        lines.append(line)
     return "\n".join(lines)
 
 

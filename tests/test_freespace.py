@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from contactpose import objects, simulate
+from contactpose import simulate
 from contactpose.contacts import Contacts
 from contactpose.errors import ContactPoseError
 from contactpose.freespace import START_REL, free_space_violations, raycaster
@@ -155,7 +155,6 @@ def test_true_contacts_pass_on_convex_and_irregular_objects(rock_model, box_mode
     without narrow concavities, at a 1 cm finger."""
     rng = np.random.default_rng(5)
     for model in (rock_model, box_model):
-        facets, poses, grasps = [], [], []
         for _ in range(100):
             g = simulate.grasp(model, rng, n=4, position_noise=POSITION_NOISE, normal_noise_deg=NORMAL_NOISE_DEG,
                                noise="bounded")
