@@ -1,4 +1,4 @@
-"""Command-line interface: ``contactpose build-model | localize | demo | bench | scan``.
+"""Command-line interface: ``contactpose build-model | localize | next-touch | demo | bench | scan``.
 
 Bad input exits with code 2 and one line on stderr (``contactpose: error: ...``);
 ``--debug`` shows the traceback of internal errors.
@@ -156,6 +156,9 @@ def build_parser():
     p.add_argument("--out", default="results/bench")
     p.set_defaults(func=cmd_bench)
 
+    from contactpose import touch
+
+    touch.register_cli(sub)
     _register_optional(sub)
     return parser
 
@@ -175,11 +178,17 @@ def main(argv=None):
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.debug else logging.WARNING,
                         format="contactpose: %(message)s")
-    warnings.showwarning = lambda msg, *a, **k: print(f"contactpose: warning: {msg}", file=sys.stderr)
-    try:
-        return args.func(args)
-    except ContactPoseError as exc:
-        if args.debug:
-            raise
-        print(f"contactpose: error: {exc}", file=sys.stderr)
-        return 2
+    with warnings.catch_warnings():  # restores warnings.showwarning when main returns
+        warnings.showwarning = _show_warning
+        try:
+            return args.func(args)
+        except ContactPoseError as exc:
+            if args.debug:
+                raise
+            print(f"contactpose: error: {exc}", file=sys.stderr)
+            return 2
+
+
+def _show_warning(message, *args, **kwargs):
+    """Warnings as one stderr line while :func:`main` runs."""
+    print(f"contactpose: warning: {message}", file=sys.stderr)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
+from functools import lru_cache
 from itertools import combinations
 
 import numpy as np
@@ -32,8 +33,13 @@ def _as_vectors(name, values, n=None):
 
 
 def _unit(name, normals):
-    """Normalise rows; zero rows raise, non-unit rows warn."""
-    norms = np.linalg.norm(normals, axis=1)
+    """Normalise rows; zero rows and rows whose length overflows raise, non-unit rows warn."""
+    with np.errstate(over="ignore"):
+        norms = np.linalg.norm(normals, axis=1)
+    if not np.isfinite(norms).all():
+        i = np.flatnonzero(~np.isfinite(norms))[0]
+        raise ContactsError(f"{name} row {i} is too long to normalise (its length overflows a float): "
+                            f"{normals[i].tolist()}; give unit normals")
     if np.any(norms < 1e-12):
         raise ContactsError(f"{name} row {np.flatnonzero(norms < 1e-12)[0]} is a zero vector; a normal needs a direction")
     off = np.abs(norms - 1.0) > tol.UNIT_NORM
@@ -66,7 +72,7 @@ class Contacts:
             normals = _unit("finger_normals", _as_vectors("finger_normals", finger_normals, len(pts)))
         else:
             normals = -_unit("object_normals", _as_vectors("object_normals", object_normals, len(pts)))
-        _check_duplicates(pts)
+        _check_spacing(pts)
         pts.flags.writeable = False
         normals.flags.writeable = False
         object.__setattr__(self, "points", pts)
@@ -95,9 +101,15 @@ class Contacts:
                              for p, n in zip(self.points, self.finger_normals)]}
 
 
-def _check_duplicates(points):
-    diff = points[:, None, :] - points[None, :, :]
-    dist = np.sqrt(np.einsum("ijk,ijk->ij", diff, diff))
+def _check_spacing(points):
+    """Distinct contacts whose distances fit in a float. points : (n, 3) finite."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        diff = points[:, None, :] - points[None, :, :]
+        dist = np.sqrt(np.einsum("ijk,ijk->ij", diff, diff))
+    if not np.isfinite(dist).all():
+        i, j = np.argwhere(np.triu(~np.isfinite(dist), 1))[0]
+        raise ContactsError(f"contacts {i} and {j} are too far apart to compute with ({points[i].tolist()} and "
+                            f"{points[j].tolist()}); check the units")
     scale = max(float(dist.max()), 1.0)
     i, j = np.nonzero(np.triu(dist <= 1e-12 * scale, 1))
     if len(i):
@@ -159,12 +171,19 @@ class PairConditions:
     h_ji: np.ndarray
 
 
+@lru_cache(maxsize=32)
+def _finger_pairs(n):
+    """All finger pairs i < j of n fingers: (list of (i, j), i (P,), j (P,))."""
+    pairs = list(combinations(range(n), 2))
+    i, j = np.array(pairs, dtype=np.int64).reshape(-1, 2).T
+    return pairs, i, j
+
+
 def pair_conditions(contacts):
     """Δ̃_ij = |x̃_j - x̃_i| and α̃_ij = arccos(ñ_i·ñ_j) for all i < j (§3, fig. 6)."""
-    pairs = list(combinations(range(contacts.n), 2))
-    i, j = np.array(pairs).T
-    distance = np.linalg.norm(contacts.points[j] - contacts.points[i], axis=1)
+    pairs, i, j = _finger_pairs(contacts.n)
     nf, d = contacts.finger_normals, contacts.points[j] - contacts.points[i]
+    distance = np.sqrt(np.einsum("ij,ij->i", d, d))
     cos = np.einsum("ij,ij->i", nf[i], nf[j])
     h_ij = -np.einsum("ij,ij->i", nf[i], d)
     h_ji = np.einsum("ij,ij->i", nf[j], d)

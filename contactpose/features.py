@@ -141,20 +141,26 @@ def row_chunks(counts, chunk_pairs=CHUNK_PAIRS):
 class NearPairs:
     """Facet pairs (k, l), k <= l, that may lie within ``max_span`` of each other.
 
-    Uses a KD-tree over the facets' bounding spheres: Δmin(k, l) >= |c_k - c_l| - r_k - r_l,
-    so only centre pairs closer than max_span + r_k + r_l can qualify; no m² scan.
+    Uses a KD-tree over bounding spheres (centres (n, 3), radii (n,)) of the items ids (n,):
+    Δmin(k, l) >= |c_k - c_l| - r_k - r_l, so only centre pairs closer than
+    max_span + r_k + r_l can qualify; no n² scan.
     """
 
-    def __init__(self, triangles, valid_idx, max_span):
+    def __init__(self, centres, radii, max_span, ids=None):
         from scipy.spatial import cKDTree
 
-        self.valid_idx = valid_idx
-        tri = triangles[valid_idx]
-        self.centres = tri.mean(axis=1)
-        self.radii = np.linalg.norm(tri - self.centres[:, None], axis=2).max(axis=1)
+        self.valid_idx = np.arange(len(centres)) if ids is None else ids
+        self.centres, self.radii = centres, radii
         self.reach = max_span + self.radii + self.radii.max()
         self.tree = cKDTree(self.centres)
         self.max_span = max_span
+
+    @classmethod
+    def of_facets(cls, triangles, valid_idx, max_span):
+        """Near pairs of the facets valid_idx of triangles (m, 3, 3)."""
+        tri = triangles[valid_idx]
+        centres = tri.mean(axis=1)
+        return cls(centres, np.linalg.norm(tri - centres[:, None], axis=2).max(axis=1), max_span, valid_idx)
 
     def count_bound(self):
         """Upper bound on the number of candidate pairs (k <= l), without listing them."""
@@ -171,18 +177,16 @@ class NearPairs:
         return self.valid_idx[rows[keep]], self.valid_idx[cols[keep]]
 
 
-def pair_features(triangles, planes, *, bounds="exact", progress=None, max_span=None, keep=True, sink=None):
+def pair_features(triangles, planes, *, bounds="exact", progress=None, max_span=None):
     """Characteristics of the unordered valid facet pairs (§3.1, with erratum 4).
 
     triangles : (m, 3, 3) float; planes : FacetPlanes; bounds : "exact" | "paper";
     max_span : keep only pairs with Δmin <= max_span (None: all pairs);
-    progress : None shows a bar on a terminal for large models;
-    sink : optional callable given each chunk's PairFeatures as it is computed;
-    keep : return the PairFeatures of all pairs (else None: only the sink sees them).
+    progress : None shows a bar on a terminal for large models.
     """
     valid_idx = np.flatnonzero(planes.valid)
     v = len(valid_idx)
-    near = None if max_span is None else NearPairs(triangles, valid_idx, max_span)
+    near = None if max_span is None else NearPairs.of_facets(triangles, valid_idx, max_span)
     total = v * (v + 1) // 2
     if progress is None:
         progress = total >= PROGRESS_MIN_PAIRS and sys.stderr.isatty()
@@ -193,13 +197,9 @@ def pair_features(triangles, planes, *, bounds="exact", progress=None, max_span=
         for start, stop in chunks:
             k, l = unordered_pairs(valid_idx, start, stop) if near is None else near.rows(start, stop)
             part = _chunk_features(triangles, planes.normals, k, l, bounds)
-            part = part if near is None else _within_span(part, max_span, bounds)
-            if sink is not None:
-                sink(PairFeatures(*part))
-            if keep:
-                parts.append(part)
+            parts.append(part if near is None else _within_span(part, max_span, bounds))
             bar.update(stop - start)
-    return PairFeatures(*_concat_fields(parts)) if keep else None
+    return PairFeatures(*_concat_fields(parts))
 
 
 def _within_span(part, max_span, bounds):

@@ -346,28 +346,51 @@ def _vertex_minmax(tri, k, l):
     return lo, hi
 
 
+@njit(cache=True)
+def _vertex_row(tri, ks, ls, i, dmin_v, dmax):
+    lo, hi = _vertex_minmax(tri, ks[i], ls[i])
+    dmin_v[i] = np.sqrt(lo)
+    dmax[i] = np.sqrt(hi)
+
+
+@njit(cache=True)
+def _bounds_row(tri, ks, ls, i, dmin, dmin_v, dmax):
+    _vertex_row(tri, ks, ls, i, dmin_v, dmax)
+    if dmin_v[i] == 0.0:  # a shared vertex: the facets touch
+        dmin[i] = 0.0
+        return
+    a = tri[ks[i]]
+    b = tri[ls[i]]
+    dmin[i] = np.sqrt(_triangle_triangle_d2(_t(a[0]), _t(a[1]), _t(a[2]), _t(b[0]), _t(b[1]), _t(b[2])))
+
+
 # prange halves the wall time of both pair kernels on 2 idle cores (measured:
 # vertex-only 2.5e7 -> 6e7 pairs/s, exact 1.5e6 -> 3e6 pairs/s); with the
-# other core busy it matches the serial loop.
+# other core busy it matches the serial loop. Small batches take the serial twin:
+# waking the thread pool costs more than it saves.
 
 @njit(cache=True, parallel=True)
 def _pair_vertex_kernel(tri, ks, ls, dmin_v, dmax):
     for i in numba.prange(ks.shape[0]):
-        lo, hi = _vertex_minmax(tri, ks[i], ls[i])
-        dmin_v[i] = np.sqrt(lo)
-        dmax[i] = np.sqrt(hi)
+        _vertex_row(tri, ks, ls, i, dmin_v, dmax)
+
+
+@njit(cache=True)
+def _pair_vertex_serial(tri, ks, ls, dmin_v, dmax):
+    for i in range(ks.shape[0]):
+        _vertex_row(tri, ks, ls, i, dmin_v, dmax)
 
 
 @njit(cache=True, parallel=True)
 def _pair_bounds_kernel(tri, ks, ls, dmin, dmin_v, dmax):
     for i in numba.prange(ks.shape[0]):
-        lo, hi = _vertex_minmax(tri, ks[i], ls[i])
-        dmin_v[i] = np.sqrt(lo)
-        dmax[i] = np.sqrt(hi)
-        a = tri[ks[i]]
-        b = tri[ls[i]]
-        dmin[i] = np.sqrt(_triangle_triangle_d2(_t(a[0]), _t(a[1]), _t(a[2]),
-                                                _t(b[0]), _t(b[1]), _t(b[2])))
+        _bounds_row(tri, ks, ls, i, dmin, dmin_v, dmax)
+
+
+@njit(cache=True)
+def _pair_bounds_serial(tri, ks, ls, dmin, dmin_v, dmax):
+    for i in range(ks.shape[0]):
+        _bounds_row(tri, ks, ls, i, dmin, dmin_v, dmax)
 
 
 # ------------------------------------------------------ input validation ---
@@ -442,6 +465,11 @@ def closest_points_on_triangles(points, triangles):
     return x
 
 
+#: Batches smaller than this run serially: waking the thread pool costs more than it
+#: saves, and on 2 cores it contends with numpy's BLAS threads.
+PARALLEL_MIN_PAIRS = 50_000
+
+
 def triangle_pair_vertex_bounds(triangles, k, l):
     """The paper's vertex-only distance bounds of facet pairs (k[i], l[i]).
 
@@ -454,29 +482,9 @@ def triangle_pair_vertex_bounds(triangles, k, l):
     triangles, k, l = _pairs(triangles, k, l)
     dmin_v = np.empty(len(k))
     dmax = np.empty(len(k))
-    with _threads_for(len(k)):
-        _pair_vertex_kernel(triangles, k, l, dmin_v, dmax)
+    kernel = _pair_vertex_kernel if len(k) >= PARALLEL_MIN_PAIRS else _pair_vertex_serial
+    kernel(triangles, k, l, dmin_v, dmax)
     return dmin_v, dmax
-
-
-#: Batches smaller than this run on one thread: waking the thread pool costs more
-#: than it saves, and on 2 cores it contends with numpy's BLAS threads.
-PARALLEL_MIN_PAIRS = 50_000
-
-
-class _threads_for:
-    """Context: numba threads for a batch of p pairs (one thread for small batches)."""
-
-    def __init__(self, p):
-        self.p = p
-
-    def __enter__(self):
-        self.saved = numba.get_num_threads()
-        if self.p < PARALLEL_MIN_PAIRS:
-            numba.set_num_threads(1)
-
-    def __exit__(self, *exc):
-        numba.set_num_threads(self.saved)
 
 
 def triangle_pair_bounds(triangles, k, l):
@@ -493,6 +501,6 @@ def triangle_pair_bounds(triangles, k, l):
     dmin = np.empty(len(k))
     dmin_v = np.empty(len(k))
     dmax = np.empty(len(k))
-    with _threads_for(len(k)):
-        _pair_bounds_kernel(triangles, k, l, dmin, dmin_v, dmax)
+    kernel = _pair_bounds_kernel if len(k) >= PARALLEL_MIN_PAIRS else _pair_bounds_serial
+    kernel(triangles, k, l, dmin, dmin_v, dmax)
     return dmin, dmin_v, dmax

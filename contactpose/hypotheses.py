@@ -6,8 +6,9 @@ hypotheses h = (γ_1, ..., γ_n), tuples that satisfy every finger pair.
 
 Two joins give the same set:
 
-* :func:`join_tuples`, the default: level by level, vectorized over all nodes,
-  starting from the most selective finger pair.
+* :func:`join_tuples`, the default: level by level over all nodes in one compiled
+  pass, starting from the most selective finger pair; membership by binary search
+  on sorted pair keys.
 * :func:`join_tuples_paper`: the paper's tree, node by node in finger order.
 """
 
@@ -54,6 +55,14 @@ class PairSet:
         pos = np.minimum(np.searchsorted(self._keys, key), len(self._keys) - 1)
         return self._keys[pos] == key
 
+    def sorted_keys(self, reverse=False):
+        """Sorted keys k·m + l of the pairs (l·m + k when ``reverse``), (s,) int64."""
+        key = ("keys", reverse)
+        if key not in self._csr:
+            a, b = (self.second, self.first) if reverse else (self.first, self.second)
+            self._csr[key] = np.sort(a * self.m + b)
+        return self._csr[key]
+
     def neighbours(self, reverse=False):
         """CSR adjacency (indptr (m+1,), targets) from first to second (or back)."""
         if reverse not in self._csr:
@@ -89,26 +98,6 @@ def _contains(S, a, b, fa, fb):
     return pairs.contains(fb, fa) if rev else pairs.contains(fa, fb)
 
 
-def _expand(S, a, f, facets_a):
-    """All facets of finger f admissible with finger a on facets_a.
-
-    facets_a : (r,) int. Returns (rows (q,) int into facets_a, facets_f (q,) int).
-    """
-    pairs, rev = _pair(S, a, f)
-    indptr, targets = pairs.neighbours(reverse=rev)
-    counts = indptr[facets_a + 1] - indptr[facets_a]
-    rows = np.repeat(np.arange(len(facets_a)), counts)
-    # position of each output within its row's neighbour list: 0..count-1
-    starts = np.cumsum(counts) - counts
-    within = np.arange(len(rows)) - np.repeat(starts, counts)
-    return rows, targets[np.repeat(indptr[facets_a], counts) + within]
-
-
-def triple_products(normals):
-    """det[a, b, c] of three unit vectors. normals : (..., 3, 3) rows a, b, c -> (...)"""
-    return np.linalg.det(normals)
-
-
 def triple_tolerance(angle_bound):
     """Bound on |det[m_a, m_b, m_c] - det[n_a, n_b, n_c]| when each unit vector m is n tilted
     by at most ``angle_bound``: det is multilinear, |m - n| <= δ = 2 sin(angle/2), so the
@@ -130,18 +119,6 @@ class TripleTest:
         self.measured = measured
         self.tol = triple_tolerance(angle_bound)
 
-    def keep(self, tuples, assigned):
-        """(r,) bool: tuples (r, c) whose every triple containing the last column passes.
-
-        assigned : the finger of each column.
-        """
-        last = len(assigned) - 1
-        cols = np.array([(a, b, last) for a in range(last) for b in range(a + 1, last)], dtype=np.int64)
-        if len(cols) == 0:
-            return np.ones(len(tuples), dtype=bool)
-        want = triple_products(self.measured[np.asarray(assigned)[cols]])
-        return _triples_within(self.facet_normals, tuples, cols, want, self.tol)
-
 
 @numba.njit(cache=True)
 def _det3(a, b, c):
@@ -149,45 +126,175 @@ def _det3(a, b, c):
             + a[2] * (b[0] * c[1] - b[1] * c[0]))
 
 
-@numba.njit(cache=True)
-def _triples_within(normals, tuples, cols, want, tol):
-    """Per row: all |det[n_a, n_b, n_c] - want| <= tol over the column triples ``cols``."""
-    keep = np.ones(len(tuples), dtype=np.bool_)
-    for r in range(len(tuples)):
-        for t in range(len(cols)):
-            got = _det3(normals[tuples[r, cols[t, 0]]], normals[tuples[r, cols[t, 1]]],
-                        normals[tuples[r, cols[t, 2]]])
-            if abs(got - want[t]) > tol:
-                keep[r] = False
-                break
-    return keep
-
-
 def join_tuples(S, n, triple=None):
-    """All n-tuples admissible for every finger pair (the tree T), vectorized per level.
+    """All n-tuples admissible for every finger pair (the tree T), level by level in one
+    compiled pass over all nodes, starting from the most selective finger pair.
 
     S : dict (i, j) -> PairSet for i < j; triple : optional TripleTest applied to every
     triple of fingers as soon as it is placed. Returns (H, n) int64 in finger order.
     """
-    start = min(S, key=lambda key: len(S[key]))
-    assigned = list(start)
-    tuples = np.stack([S[start].first, S[start].second], axis=1)
-    while len(assigned) < n and len(tuples):
-        # next finger and the assigned finger it is expanded from: the fewest candidate pairs
-        f, a = min(((f, a) for f in range(n) if f not in assigned for a in assigned),
-                   key=lambda fa: len(_pair(S, fa[1], fa[0])[0]))
-        rows, new = _expand(S, a, f, tuples[:, assigned.index(a)])
-        keep = np.ones(len(rows), dtype=bool)
-        for b in assigned:
-            if b != a:
-                keep &= _contains(S, b, f, tuples[rows, assigned.index(b)], new)
-        tuples = np.column_stack([tuples[rows[keep]], new[keep]])
-        assigned.append(f)
-        if triple is not None:
-            tuples = tuples[triple.keep(tuples, assigned)]
-    if len(assigned) < n:
-        return np.empty((0, n), dtype=np.int64)
-    return tuples[:, np.argsort(assigned)]
+    pairs = sorted(S)
+    pair_of = np.full((n, n), -1, dtype=np.int64)
+    for e, (i, j) in enumerate(pairs):
+        pair_of[i, j] = pair_of[j, i] = e
+    order, parent = placement_order(S, n)
+    m = S[pairs[0]].m
+    dense = m * m <= BITMAP_MAX_CELLS
+    # membership keys k·m + l per finger pair (sorted unless a bitmap answers), and for each
+    # level the sorted keys of its expansion pair, keyed by the parent finger's facet first
+    member = _flat([S[p].sorted_keys() if not dense else S[p].first * m + S[p].second for p in pairs])
+    expand = _flat([S[(min(g, f), max(g, f))].sorted_keys(reverse=g > f)
+                    for g, f in zip(order[parent[2:]], order[2:])])
+    if triple is None:
+        normals, measured, tol = np.zeros((1, 3)), np.zeros((n, 3)), np.inf
+    else:
+        normals, measured, tol = triple.facet_normals, triple.measured, triple.tol
+    start = S[tuple(order[:2])]
+    return _join(start.first, start.second, *member, *expand, m, dense, order, parent, pair_of,
+                 np.ascontiguousarray(normals, dtype=np.float64),
+                 np.ascontiguousarray(measured, dtype=np.float64), float(tol))
+
+
+def _flat(arrays):
+    """Arrays -> (concatenation, (len + 1,) segment offsets)."""
+    cut = np.zeros(len(arrays) + 1, dtype=np.int64)
+    np.cumsum([len(a) for a in arrays], out=cut[1:])
+    return np.concatenate(arrays + [np.empty(0, np.int64)]).astype(np.int64), cut
+
+
+def placement_order(S, n):
+    """Fingers in the order the tree places them, and for each the position (in that
+    order) of the placed finger it is expanded from: first the most selective pair, then
+    always the (new, placed) finger pair with the fewest admissible facet pairs.
+    Returns (order (n,) int64, parent (n,) int64; parent of the first two is -1)."""
+    size = {key: len(S[key]) for key in S}
+    start = min(size, key=size.get)
+    order, parent = list(start), [-1, -1]
+    while len(order) < n:
+        f, a = min(((f, a) for f in range(n) if f not in order for a in order),
+                   key=lambda fa: size[(min(fa), max(fa))])
+        order.append(f)
+        parent.append(order.index(a))
+    return np.array(order, dtype=np.int64), np.array(parent, dtype=np.int64)
+
+
+@numba.njit(cache=True)
+def _join(first, second, keys, cut, expand, ecut, m, dense, order, parent, pair_of, normals, measured, tol):
+    """The tree T. first, second : the start pair's facets; keys, cut : membership keys per
+    finger pair; expand, ecut : sorted expansion keys per level (see join_tuples)."""
+    n = len(order)
+    nodes = np.empty((len(first), n), dtype=np.int64)
+    nodes[:, 0], nodes[:, 1] = first, second
+    count = len(nodes)
+    bits = _bitmaps(keys, cut, m * m if dense else 0, _tested_pairs(order, pair_of, len(cut) - 1))
+    for level in range(2, n):
+        nodes, count = _grow(nodes, count, level, expand[ecut[level - 2]:ecut[level - 1]], keys, cut, bits, m,
+                             order, parent, pair_of, normals, measured, tol)
+    out = np.empty((count, n), dtype=np.int64)
+    for c in range(n):
+        out[:, order[c]] = nodes[:count, c]
+    return out
+
+
+@numba.njit(cache=True)
+def _tested_pairs(order, pair_of, num_pairs):
+    """(P,) bool: the finger pairs that membership tests ask (not the start pair, nor a
+    pair used only to expand)."""
+    tested = np.zeros(num_pairs, dtype=np.bool_)
+    for level in range(2, len(order)):
+        for b in range(level):
+            if b != -1 and pair_of[order[b], order[level]] >= 0:
+                tested[pair_of[order[b], order[level]]] = True
+    return tested
+
+
+@numba.njit(cache=True)
+def _bitmaps(keys, cut, cells, tested):
+    """A packed bitmap (8 keys a byte) of each tested finger pair's keys; cells = m², or 0
+    for no bitmaps (sorted keys answer then)."""
+    bits = np.zeros((len(cut) - 1 if cells else 0, (cells + 7) // 8), dtype=np.uint8)
+    for e in range(bits.shape[0]):
+        if tested[e]:
+            for q in range(cut[e], cut[e + 1]):
+                bits[e, keys[q] >> 3] |= np.uint8(1 << (keys[q] & 7))
+    return bits
+
+
+@numba.njit(cache=True)
+def _grow(nodes, count, level, expand, keys, cut, bits, m, order, parent, pair_of, normals, measured, tol):
+    """Place finger order[level] under every node: each facet its parent finger admits
+    (``expand``: parent facet · m + new facet, sorted), kept if every other placed finger
+    admits it too and every new triple passes."""
+    a = parent[level]
+    want = _measured_triples(measured, order, level)
+    out = np.empty((max(count, 16), nodes.shape[1]), dtype=np.int64)
+    k = 0
+    for r in range(count):
+        lo = np.searchsorted(expand, nodes[r, a] * m)
+        hi = np.searchsorted(expand, (nodes[r, a] + 1) * m)
+        for q in range(lo, hi):
+            facet = expand[q] % m
+            if not _admitted(nodes[r], facet, level, a, keys, cut, bits, m, order, pair_of):
+                continue
+            if tol < np.inf and not _triples_pass(normals, nodes[r], facet, level, want, tol):
+                continue
+            if k == len(out):
+                out = _doubled(out)
+            out[k, :level] = nodes[r, :level]
+            out[k, level] = facet
+            k += 1
+    return out, k
+
+
+@numba.njit(cache=True)
+def _admitted(node, facet, level, skip, keys, cut, bits, m, order, pair_of):
+    """Whether every placed finger but ``skip`` admits finger order[level] on ``facet``."""
+    f = order[level]
+    for b in range(level):
+        if b == skip:
+            continue
+        g = order[b]
+        e = pair_of[g, f]
+        key = node[b] * m + facet if g < f else facet * m + node[b]
+        if bits.shape[0]:
+            if not (bits[e, key >> 3] >> (key & 7)) & 1:
+                return False
+        else:
+            seg = keys[cut[e]:cut[e + 1]]
+            pos = np.searchsorted(seg, key)
+            if pos == len(seg) or seg[pos] != key:
+                return False
+    return True
+
+
+@numba.njit(cache=True)
+def _measured_triples(measured, order, level):
+    """det[ñ_a, ñ_b, ñ_new] of the measured normals for placed pairs a < b (row-major)."""
+    want = np.empty(level * (level - 1) // 2)
+    t = 0
+    for a in range(level):
+        for b in range(a + 1, level):
+            want[t] = _det3(measured[order[a]], measured[order[b]], measured[order[level]])
+            t += 1
+    return want
+
+
+@numba.njit(cache=True)
+def _triples_pass(normals, node, facet, level, want, tol):
+    t = 0
+    for a in range(level):
+        for b in range(a + 1, level):
+            if abs(_det3(normals[node[a]], normals[node[b]], normals[facet]) - want[t]) > tol:
+                return False
+            t += 1
+    return True
+
+
+@numba.njit(cache=True)
+def _doubled(a):
+    out = np.empty((2 * len(a), a.shape[1]), dtype=a.dtype)
+    out[:len(a)] = a
+    return out
 
 
 def join_tuples_paper(S, n):

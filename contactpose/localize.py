@@ -16,11 +16,13 @@ from dataclasses import dataclass, field
 from functools import lru_cache
 
 import numpy as np
+from scipy.spatial.distance import pdist
 
 from contactpose import residuals as res
 from contactpose.contacts import Contacts, Tolerance, pair_conditions
 from contactpose.errors import ContactPoseError, PriorError, ResourceError
 from contactpose.hypotheses import TripleTest, admissible_pairs, join_tuples, join_tuples_paper
+from contactpose.infacet import within_noise
 from contactpose.patches import nearest_members
 from contactpose.metrics import SAME_CLASS_ADDS_FRAC, adds, displacement_bound
 from contactpose.solvers.closed_form import PoseFit, fit_poses
@@ -301,13 +303,17 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
         sub, sub_timing = _search(model, contacts.permuted(keep), tolerance, prior, method, pose_solver)
         arrays = arrays.merged(sub.widened(keep, contacts.n, len(dropped) * OUTLIER_PENALTY))
         timing = {k: timing[k] + sub_timing[k] for k in timing}
+    rescue = ""
     if solver == "factor-graph":
         refine_start = time.perf_counter()
-        arrays = _refine(model, contacts, arrays, tolerance, prior, robust, refine)
+        arrays, rescue = _refine(model, contacts, arrays, tolerance, prior, robust, refine)
         timing["refine"] = time.perf_counter() - refine_start
     classes_start = time.perf_counter()
-    classes = pose_classes(model, arrays, contacts.n)
+    fits = None if method == "paper" else within_noise(model, contacts, arrays, tolerance, fit_threshold(contacts.n))
+    classes = pose_classes(model, arrays, contacts.n, fits)
     status, hint = _status(model, contacts, arrays, classes, tolerance)
+    if rescue:
+        hint = f"{hint}; {rescue}" if hint else rescue
     num = len(arrays.cost)
     if top is not None:
         arrays = arrays.take(slice(0, top))
@@ -359,20 +365,38 @@ def _search(model, contacts, tolerance, prior, method, solver):
 
 def _refine(model, contacts, arrays, tolerance, prior, robust, k):
     """The factor graph's refinement of the best k hypotheses, as ranked HypothesisArrays
-    (by Laplace evidence), with covariance and probability."""
-    from contactpose.solvers.factor_graph import refine_hypotheses
+    (by Laplace evidence), with covariance and probability. Unassigned fingers (facet -1,
+    max_outliers) have no contact residual.
 
-    if len(arrays.cost) == 0:
-        return arrays
-    if (arrays.facets < 0).any():
-        raise ContactPoseError("solver='factor-graph' does not combine with max_outliers yet")
-    ref = refine_hypotheses(model, contacts, arrays, tolerance, prior=prior, robust=robust, k=k)
-    fit = arrays.fit.take(ref.index)
-    fit.R, fit.t = ref.poses[:, :3, :3], ref.poses[:, :3, 3]
-    ranked = _rank(model, contacts, ref.facets, fit, None, tolerance, "fast", order=False)
-    ranked.cost = -np.nan_to_num(ref.log_evidence, nan=-np.inf)
-    ranked.covariance, ranked.probability = ref.covariance, ref.probability
-    return ranked
+    With a prior, when no hypothesis both agrees with it and, refined, fits the contacts
+    within noise (χ² <= fit_threshold), the search runs again at RESCUE_WIDEN times the pair
+    tolerances and, if still none agrees with the prior, each contact also gets its
+    best-fitting facet under the prior pose; all of these are refined together, and a
+    warning says what was done (research/factor_graph.md, "Rescue"). Returns (arrays, that
+    note or "")."""
+    from contactpose.solvers import factor_graph as fg
+
+    def refined(a):
+        if len(a.cost) == 0:
+            return a, 0
+        ref = fg.refine_hypotheses(model, contacts, a, tolerance, prior=prior, robust=robust, k=k)
+        return fg.hypothesis_arrays(model, contacts, ref, a.fit.take(ref.index), tolerance), ref.agreeing
+
+    out, agreeing = refined(arrays)
+    if prior is None or (agreeing > 0 and out.chi2[0] <= fit_threshold(contacts.n)):
+        return out, ""
+    wide = Tolerance(fg.RESCUE_WIDEN * tolerance.distance, min(fg.RESCUE_WIDEN * tolerance.angle, np.pi),
+                     tolerance.position_noise, tolerance.normal_noise)
+    arrays = arrays.merged(_search(model, contacts, wide, prior, "fast", "closed-form")[0])
+    arrays = arrays.take(np.sort(np.unique(arrays.facets, axis=0, return_index=True)[1]))  # found twice
+    how = f"searched again with {fg.RESCUE_WIDEN:g}x the pair tolerances"
+    if not fg.agrees_with_prior(model, arrays, tolerance, prior):
+        facets = fg.nearest_fit_facets(model, contacts, prior.pose, tolerance)
+        arrays = arrays.merged(fg.closed_form_arrays(model, contacts, facets[None], tolerance))
+        how += " and added each contact's best-fitting facet under the prior pose"
+    note = f"no hypothesis both agreed with the vision prior and fit within noise: {how}"
+    warnings.warn(note, stacklevel=3)
+    return refined(arrays)[0], note
 
 
 def _check_outliers(max_outliers, method, n):
@@ -442,12 +466,9 @@ def _fit(model, contacts, facets, tolerance, prior, solver, method):
 
 def _rank(model, contacts, facets, fit, cost_paper, tolerance, method, order=True):
     """Residuals and cost of every hypothesis, sorted best first (unless order=False)."""
-    normals = model.planes.normals[facets]
     offsets = model.planes.offsets[facets]
-    r_n = res.normal_residuals(fit.R, normals, contacts.finger_normals)
-    p_obj = res.to_object_frame(fit.R, fit.t, contacts.points)
-    r_o = res.offset_residuals(p_obj, normals, offsets)
-    r_l = res.lateral_residuals(p_obj, model.triangles[facets], r_o)
+    r_n, r_o, r_l = res.contact_residuals(fit.R, fit.t, model.planes.normals[facets], offsets,
+                                          model.triangles[facets], contacts.points, contacts.finger_normals)
     chi2 = res.whitened_cost(r_n, r_o, r_l, tolerance.normal_noise, tolerance.position_noise)
     if method == "paper":
         r_p = res.paper_offset_residuals(fit.t, contacts.points, contacts.finger_normals, offsets)
@@ -457,7 +478,9 @@ def _rank(model, contacts, facets, fit, cost_paper, tolerance, method, order=Tru
         cost, offset_col = chi2, r_o
     residual = np.concatenate([r_n, offset_col[..., None], r_l[..., None]], axis=2)
     arrays = HypothesisArrays(facets, fit.poses(), cost, chi2, residual, fit)
-    return arrays.take(np.argsort(cost, kind="stable")) if order else arrays
+    if not order or np.all(cost[1:] >= cost[:-1]):
+        return arrays
+    return arrays.take(np.argsort(cost, kind="stable"))
 
 
 @lru_cache(maxsize=64)
@@ -489,12 +512,13 @@ class PoseClass:
                 "chi2": float(self.chi2), "probability": float(self.probability)}
 
 
-def pose_classes(model, arrays, n):
+def pose_classes(model, arrays, n, fits=None):
     """Group the hypotheses that fit within noise into pose classes, best class first.
 
-    A hypothesis joins the first class whose best pose is within ADD-S of it, else opens one.
+    fits : (H,) bool, the hypotheses that fit (default: χ² <= fit_threshold(n)). A
+    hypothesis joins the first class whose best pose is within ADD-S of it, else opens one.
     """
-    fits = np.flatnonzero(arrays.chi2 <= fit_threshold(n))[:MAX_CLASS_HYPOTHESES]
+    fits = np.flatnonzero(arrays.chi2 <= fit_threshold(n) if fits is None else fits)[:MAX_CLASS_HYPOTHESES]
     limit = SAME_CLASS_ADDS_FRAC * model.diameter
     reps, members = [], []
     for i in fits:
@@ -527,7 +551,7 @@ def _status(model, contacts, arrays, classes, tolerance):
     """Status and hint from the ranked hypotheses and their pose classes."""
     if len(arrays.cost) == 0:
         return "no_hypothesis", _no_hypothesis_hint(model, contacts, tolerance)
-    if arrays.fit.underdetermined[0]:
+    if arrays.fit.underdetermined[0] and (arrays.covariance is None or not np.isfinite(arrays.covariance[0]).all()):
         return "underdetermined", "the hypothesised facet normals leave pose directions free; see free_translation / free_rotation"
     if len(classes) > 1 and (arrays.probability is None or 1.0 - classes[0].probability > AMBIGUOUS_PROBABILITY):
         return "ambiguous", (f"{len(classes)} distinct placements fit within noise (probabilities "
@@ -539,7 +563,7 @@ def _status(model, contacts, arrays, classes, tolerance):
 
 def contact_spread(contacts):
     """Largest distance between two contacts."""
-    return float(np.max(np.linalg.norm(contacts.points[:, None] - contacts.points[None], axis=2)))
+    return float(np.max(pdist(contacts.points)))
 
 
 def _check_span(model, conditions, tolerance):

@@ -8,9 +8,11 @@ their indices.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import logging
 import os
+import secrets
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -20,15 +22,17 @@ import numpy as np
 import trimesh
 
 from contactpose import tol
-from contactpose.errors import MeshError, ModelFileError
+from contactpose.errors import ContactPoseError, MeshError, ModelFileError
 from contactpose.features import NearPairs, PairFeatures, pair_features
-from contactpose.patches import PatchReducer, Patches, find_patches
+from contactpose.patches import PatchPairs, Patches, find_patches
+from contactpose.stored import STORED_MODEL, check_arrays
 from contactpose.table import DEFAULT_BINS, STORED_BYTES_PER_PAIR, PairTable, check_bins, check_memory
 
 log = logging.getLogger(__name__)
 
 #: Version of the .npz model file layout. Bump on any incompatible change.
-FORMAT_VERSION = 1
+#: 2: every array is checked on load (stored.py), and files are replaced, not rewritten.
+FORMAT_VERSION = 2
 #: Default patch tolerance: half the default normal noise of 1°, so a patch is flatter
 #: than the sensor can tell apart (research/design.md).
 DEFAULT_PATCH_TOL_DEG = 0.5
@@ -82,15 +86,24 @@ def load_mesh(source):
         path = os.fspath(source)
         if not os.path.isfile(path):
             raise MeshError(f"mesh file {path!r} does not exist or is not a file")
-        try:
-            mesh = trimesh.load(path, force="mesh", process=False)
-        except Exception as exc:  # trimesh raises many types for unreadable files
-            raise MeshError(f"cannot read {path!r} as a mesh: {exc}") from None
-        if not isinstance(mesh, trimesh.Trimesh):
-            raise MeshError(f"{path!r} holds no triangle mesh (got {type(mesh).__name__})")
+        mesh = _read_mesh_file(path)
     vertices = np.asarray(mesh.vertices, dtype=np.float64)
     faces = np.asarray(mesh.faces, dtype=np.int64)
     return check_mesh_arrays(vertices, faces)
+
+
+def _read_mesh_file(path):
+    """trimesh.Trimesh of a mesh file with at least one face, else MeshError naming the file."""
+    try:
+        mesh = trimesh.load(path, force="mesh", process=False)
+    except Exception as exc:  # trimesh raises many types for unreadable files
+        raise MeshError(f"cannot read {path!r} as a mesh: {exc}") from None
+    if not isinstance(mesh, trimesh.Trimesh):
+        raise MeshError(f"{path!r} holds no triangle mesh (got {type(mesh).__name__})")
+    if len(mesh.faces) == 0:  # trimesh reads text or random bytes named .stl/.obj as an empty mesh
+        raise MeshError(f"cannot read {path!r} as a mesh: it has no faces (a mesh needs faces of shape "
+                        f"(m, 3) with m >= 1, got shape {np.shape(mesh.faces)})")
+    return mesh
 
 
 def check_mesh_arrays(vertices, faces):
@@ -150,14 +163,20 @@ def rewind_outward(vertices, faces):
     vertices : (V, 3), faces : (m, 3) int  ->  faces (m, 3) int, with flipped faces'
     last two indices swapped (facet indices are unchanged).
     """
-    merged = trimesh.Trimesh(vertices, faces, process=False)
-    merged.merge_vertices()
-    before = merged.face_normals.copy()
+    merged = merged_mesh(vertices, faces)
+    before = _face_cross(merged)
     trimesh.repair.fix_normals(merged)
-    flipped = np.einsum("ij,ij->i", before, merged.face_normals) < 0
+    # recomputed from the faces: Trimesh.invert() leaves the cached face_normals as they were
+    flipped = np.einsum("ij,ij->i", before, _face_cross(merged)) < 0
     fixed = faces.copy()
     fixed[flipped] = fixed[flipped][:, [0, 2, 1]]
     return fixed
+
+
+def _face_cross(mesh):
+    """(m, 3) float: unnormalised facet normals of a trimesh, from its current faces."""
+    t = mesh.vertices[mesh.faces]
+    return np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
 
 
 def mesh_hash(vertices, faces):
@@ -222,23 +241,22 @@ class ObjectModel:
         max_span = _check_span(max_span)
         pair_count = _pair_count(triangles, planes, max_span)
         patches = _find_patches(merged, planes, bounds, patch_tol_deg)
-        reduce = patches is not None and patches.worthwhile
         keep = _keep_facet_pairs(facet_pairs, patches, pair_count)
-        check_memory(pair_count, len(faces), max_span, keep, patches.count if reduce else 0)
+        patch_pairs = PatchPairs(triangles, planes, patches, diameter, max_span) if _serves(patches) else None
+        check_memory(pair_count if keep else 0, len(faces), max_span, 0 if patch_pairs is None else patch_pairs.count)
         t_planes = time.perf_counter()
-        reducer = PatchReducer(patches) if reduce else None
-        features = pair_features(triangles, planes, bounds=bounds, progress=progress, max_span=max_span,
-                                 keep=keep, sink=reducer)
-        t_features = time.perf_counter()
-        patch_table = None if reducer is None else PairTable.build(reducer.features(), bins, max_span)
+        patch_table = None if patch_pairs is None else PairTable.build(patch_pairs.features(progress), bins, max_span)
+        del patch_pairs
         t_patches = time.perf_counter()
+        features = pair_features(triangles, planes, bounds=bounds, progress=progress, max_span=max_span) if keep else None
+        t_features = time.perf_counter()
         table = PairTable.build(features, bins, max_span) if keep else None
         t_table = time.perf_counter()
         seconds = {
             "planes": t_planes - start,
-            "features": t_features - t_planes,
-            "patches": t_patches - t_features,
-            "table": t_table - t_patches,
+            "patches": t_patches - t_planes,
+            "features": t_features - t_patches,
+            "table": t_table - t_features,
             "total": t_table - start,
         }
         return cls(vertices, faces, planes, table, bounds, diameter,
@@ -302,7 +320,10 @@ class ObjectModel:
 
     # ----------------------------------------------------------- persistence
     def save(self, path):
-        """Write the model to one ``.npz`` (no pickle). Returns the path written."""
+        """Write the model to one ``.npz`` (no pickle). Returns the path written.
+
+        The file is written beside ``path`` and renamed over it, so a process that has
+        the old file memory-mapped keeps its contents."""
         path = os.fspath(path)
         arrays = {
             "format_version": np.array(FORMAT_VERSION),
@@ -325,8 +346,7 @@ class ObjectModel:
             arrays.update({f"pfeatures_{k}": v for k, v in self.patch_table.features.to_arrays().items()})
             arrays.update({f"ptable_{k}": v for k, v in self.patch_table.to_arrays().items()})
         arrays["content_hash"] = np.array(content_hash(arrays))
-        with open(path, "wb") as fh:
-            np.savez(fh, **arrays)
+        _write_replacing(path, arrays)
         return path
 
     @classmethod
@@ -344,28 +364,26 @@ class ObjectModel:
             raise ModelFileError(f"model file {path!r} is corrupt: its arrays do not match its content hash")
         try:
             model = cls._from_arrays(data)
-        except KeyError as exc:
-            raise ModelFileError(f"model file {path!r} lacks the array {exc.args[0]!r}: corrupt or not a model") from None
+        except ContactPoseError as exc:  # a MeshError too: the mesh is the file's
+            raise ModelFileError(f"model file {path!r} is corrupt or not a model: {exc}") from None
         model._check_expected(path, mesh=mesh, bins=bins, bounds=bounds)
         return model
 
     @classmethod
     def _from_arrays(cls, data):
+        """The model of a file's arrays, each checked first (stored.py)."""
+        sizes = {}
+        check_arrays(data, STORED_MODEL, sizes)
         vertices, faces = check_mesh_arrays(data["vertices"], data["faces"])
-        planes = FacetPlanes(data["normals"], data["offsets"], data["areas"], data["valid"])
-        table = None
-        if "table_offsets" in data or "ptable_offsets" not in data:
-            table = PairTable.from_arrays(_prefixed(data, "table_"), PairFeatures.from_arrays(_prefixed(data, "features_")))
-        patches = Patches.from_arrays(_prefixed(data, "patches_")) if "patches_labels" in data else None
-        patch_table = None
-        if "ptable_offsets" in data:
-            patch_table = PairTable.from_arrays(_prefixed(data, "ptable_"),
-                                                PairFeatures.from_arrays(_prefixed(data, "pfeatures_")))
-        stored_hash = str(data["mesh_hash"])
+        bounds, diameter, stored_hash = str(data["bounds"]), float(data["diameter"]), str(data["mesh_hash"])
+        if bounds not in BOUNDS or not diameter > 0:
+            raise ModelFileError(f"'bounds' must be one of {BOUNDS} and 'diameter' positive, got {bounds!r} "
+                                 f"and {diameter}")
         if mesh_hash(vertices, faces) != stored_hash:
-            raise ModelFileError("model file is corrupt: its mesh does not match its stored hash")
-        return cls(vertices, faces, planes, table, str(data["bounds"]),
-                   float(data["diameter"]), stored_hash, {}, patches, patch_table)
+            raise ModelFileError("its mesh does not match its stored hash")
+        planes = FacetPlanes(data["normals"], data["offsets"], data["areas"], data["valid"])
+        table, patches, patch_table = _stored_tables(data, sizes["m"])
+        return cls(vertices, faces, planes, table, bounds, diameter, stored_hash, {}, patches, patch_table)
 
     @property
     def max_span(self):
@@ -407,16 +425,63 @@ def _find_patches(merged, planes, bounds, tol_deg):
     return find_patches(merged, planes, tol_deg)
 
 
+def _serves(patches):
+    """Whether the default method searches patches (they shrink the search enough)."""
+    return patches is not None and patches.worthwhile
+
+
 def _keep_facet_pairs(facet_pairs, patches, pair_count):
     """Whether to keep the facet-level table (see ObjectModel.from_mesh)."""
     if facet_pairs not in (True, False, "auto"):
         raise MeshError(f"facet_pairs must be True, False or 'auto', got {facet_pairs!r}")
-    serves = patches is not None and patches.worthwhile
+    serves = _serves(patches)
     if facet_pairs == "auto":
         return not serves or pair_count * STORED_BYTES_PER_PAIR <= FACET_TABLE_AUTO_BYTES
     if not facet_pairs and not serves:
         raise MeshError("facet_pairs=False needs patches that shrink the search (set patch_tol_deg)")
     return facet_pairs
+
+
+def _stored_tables(data, facets):
+    """(facet table, patches, patch table) of a model file's arrays, None where absent.
+    facets : (m, the array that gives it)."""
+    patches = Patches.from_arrays(_prefixed(data, "patches_"), {"m": facets}) if _has(data, "patches_") else None
+    patch_table = None
+    if _has(data, "ptable_", "pfeatures_"):
+        if patches is None:
+            raise ModelFileError("it has a patch table ('ptable_...') but no patches ('patches_...')")
+        patch_table = _stored_table(data, ("ptable_", "pfeatures_"), (patches.count, "patches_normals"))
+    table = None
+    if _has(data, "table_", "features_") or patch_table is None:  # a model has at least one table
+        table = _stored_table(data, ("table_", "features_"), facets)
+    return table, patches, patch_table
+
+
+def _stored_table(data, prefixes, items):
+    """A PairTable from the arrays named prefixes[0] + ... and prefixes[1] + ...;
+    items : (number of facets or patches its pairs index, the array that gives it)."""
+    features = PairFeatures.from_arrays(_prefixed(data, prefixes[1]))
+    return PairTable.from_arrays(_prefixed(data, prefixes[0]), features, {"n": items}, prefixes)
+
+
+def _has(data, *prefixes):
+    return any(key.startswith(prefixes) for key in data)
+
+
+def _write_replacing(path, arrays):
+    """np.savez to a new file in path's folder, then os.replace it over path: the old
+    file's inode stays intact for whoever maps it. OSError -> ModelFileError."""
+    folder, name = os.path.split(os.path.abspath(path))
+    tmp = os.path.join(folder, f".{name}.{os.getpid()}-{secrets.token_hex(4)}.tmp")
+    try:
+        with open(tmp, "xb") as fh:
+            np.savez(fh, **arrays)
+        os.replace(tmp, path)
+    except OSError as exc:
+        raise ModelFileError(f"cannot write model file {path!r}: {exc.strerror or exc}") from None
+    finally:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
 
 
 def _mmap_npz(path):
@@ -459,7 +524,7 @@ def _pair_count(triangles, planes, max_span):
     v = int(planes.valid.sum())
     if max_span is None:
         return v * (v + 1) // 2
-    return NearPairs(triangles, np.flatnonzero(planes.valid), max_span).count_bound()
+    return NearPairs.of_facets(triangles, np.flatnonzero(planes.valid), max_span).count_bound()
 
 
 def content_hash(arrays):
@@ -477,7 +542,7 @@ def _check_version(path, data):
     version = data.get("format_version")
     try:
         version = int(version)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise ModelFileError(f"model file {path!r} has no readable format version: not a contactpose model") from None
     if version != FORMAT_VERSION:
         raise ModelFileError(
@@ -499,8 +564,10 @@ def _read_npz(path):
     if os.path.isfile(path) and os.path.getsize(path) >= MMAP_MIN_BYTES:
         try:
             return _mmap_npz(path)
-        except (ValueError, OSError, KeyError):
-            pass  # not a plain stored archive: fall back to reading it
+        except MemoryError:
+            raise
+        except Exception as exc:  # any damage or foreign layout: np.load below says what is wrong
+            log.debug("cannot memory-map %s (%s: %s); reading it instead", path, type(exc).__name__, exc)
     if not os.path.isfile(path):
         raise ModelFileError(f"model file {path!r} does not exist")
     try:

@@ -395,3 +395,24 @@ def load(name: str) -> trimesh.Trimesh:
         raise ContactPoseError(
             f"unknown object {name!r}; expected one of: {', '.join(_OBJECTS)}")
     return _OBJECTS[name]()
+
+
+def make_twin_rock() -> trimesh.Trimesh:
+    """Irregular stone with exact two-fold symmetry: 320 facets, closed, 0.12 m across.
+
+    Like :func:`make_rock` (geodesic sphere of frequency 4, axis ratios 1 : 0.85 : 0.7), but
+    the smooth radial perturbation (seed 2003) is symmetrised, r(d) = f(d) + f(Rz(π) d), so a
+    half turn about z maps the surface onto itself and no other rotation does. Contacts then
+    fix the pose up to that half turn: two twin poses that place the surface identically.
+    """
+    sphere = _geodesic_sphere(4)
+    d = sphere.vertices
+    turned = d * [-1.0, -1.0, 1.0]
+    field = _radial_noise(d, np.random.default_rng(2003), n_waves=6, max_freq=3.0)
+    field = field + _radial_noise(turned, np.random.default_rng(2003), n_waves=6, max_freq=3.0)
+    radius = 1.0 + 0.15 * field
+    radius *= np.linalg.norm(d * [1.0, 0.85, 0.7], axis=1)
+    return _star_shaped(d, sphere.faces, radius, 0.12)
+
+
+_OBJECTS["twin_rock"] = make_twin_rock

@@ -40,6 +40,7 @@ the workers by value (cloudpickle), so a script's task needs no installed module
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import csv
 import functools
@@ -487,6 +488,16 @@ def read_rows(path):
         return list(csv.DictReader(fh))
 
 
+def write_rows(path, rows):
+    """Rows (dicts) as a CSV with a header: the union of their keys in first-seen order, missing
+    values empty, values as str() gives them. Plain, not atomic: for scripts' own tables."""
+    columns = list(dict.fromkeys(k for r in rows for k in r))
+    with open(path, "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=columns, restval="")
+        writer.writeheader()
+        writer.writerows(rows)
+
+
 def read_columns(path):
     """A sweep CSV as {column: numpy array}: float where every non-empty value parses as a
     number (empty -> nan), else str."""
@@ -565,6 +576,42 @@ def load_config(name, quick, directory=None):
     return {**data.get("common", {}), **data.get("quick" if quick else "full", {})}
 
 
+def start(name, doc, argv=None):
+    """Parse an experiment script's options (:func:`add_arguments`), set up logging and load
+    its config. doc : the script's docstring (first line: --help). -> (args, config, out_dir)"""
+    parser = add_arguments(argparse.ArgumentParser(description=doc.split("\n")[0]))
+    args = parser.parse_args(argv)
+    setup_logging(name)
+    return args, load_config(name, args.quick), results_dir(args, name)
+
+
+def run_logged(sweep, out_dir, args, config):
+    """:func:`run` with the script's --workers, --scheduler and --fresh; logs what it did."""
+    report = run(sweep, out_dir, workers=workers_for(args, config), scheduler=args.scheduler, resume=not args.fresh)
+    log.info("%s: ran %d cells, skipped %d, %.1f s", sweep.name, report.ran, report.skipped, report.seconds)
+    return report
+
+
+def finish(out_dir, plot, summary):
+    """Draw the figures from the CSVs, print summary(out_dir) and where it all went; returns 0."""
+    plot(out_dir)
+    print(summary(out_dir))
+    print(f"written: {out_dir}")
+    return 0
+
+
+def main(name, doc, make_sweep, plot, summary, argv=None):
+    """The whole of a one-sweep experiment script: options, config, the sweep (skipped with
+    --plot-only) into :func:`results_dir`, figures, summary.
+
+    make_sweep : config -> Sweep; plot, summary : out_dir -> paths, text. Returns 0.
+    """
+    args, config, out = start(name, doc, argv)
+    if not args.plot_only:
+        run_logged(make_sweep(config), out, args, config)
+    return finish(out, plot, summary)
+
+
 def cached(key, factory):
     """A per-process memo: factory() once per key in each worker (models, surface samples)."""
     if key not in _CACHE:
@@ -607,10 +654,15 @@ def plain_log_axis(ax, axis="y", subs=None):
 
 
 def save_figure(fig, out_dir, stem):
-    """Save fig as <stem>.png and <stem>.pdf under out_dir (no timestamps in the files)."""
+    """Lay fig out tightly, save it as <stem>.png and <stem>.pdf under out_dir (no timestamps
+    in the files) and close it. Returns the two paths."""
+    import matplotlib.pyplot as plt
+
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = [out / f"{stem}.png", out / f"{stem}.pdf"]
+    fig.tight_layout()
     fig.savefig(paths[0], metadata={"Software": None})
     fig.savefig(paths[1], metadata={"CreationDate": None, "Producer": None, "Creator": None})
+    plt.close(fig)
     return paths

@@ -17,8 +17,9 @@ import numba
 import numpy as np
 
 from contactpose import tol
-from contactpose.errors import ContactPoseError, ResourceError
+from contactpose.errors import ContactPoseError, ModelFileError, ResourceError
 from contactpose.features import CHUNK_PAIRS, PairFeatures
+from contactpose.stored import STORED_FEATURES, STORED_TABLE, check_arrays, check_pointers
 
 #: Default bins (p_dmax, p_dmin, p_alpha). α bins of 180°/64 ≈ 2.8° sit just below the
 #: pair angle tolerance at 1° normal noise (4.2°), so an angle query touches 2–4 α bins;
@@ -48,36 +49,38 @@ def check_bins(bins):
 #: Temporaries per pair while a chunk of pair features is computed (int64 indices,
 #: float64 distances, cosines and direction intervals before rounding to float32); measured.
 CHUNK_TEMP_BYTES_PER_PAIR = 90
-#: Patch-pair accumulators: 8 float64 per patch pair.
-PATCH_ACC_BYTES_PER_PAIR = 64
+#: Bytes per patch pair at the patch table's peak (patches.PatchPairs): candidate indices
+#: (int32) and work estimate (int64), the float32 features, their copy kept within the span,
+#: and the sort into K3 (int64 key and permutation, one permuted field); measured.
+PATCH_PAIR_BYTES = 16 + 36 + 44 + 24
 
 
-def estimate_bytes(num_pairs, keep_facets=True, num_patches=0):
+def estimate_bytes(num_pairs, num_patch_pairs=0):
     """Peak memory of building a model's pair tables, in bytes.
 
-    The peak is the larger of the chunk phase (stored pairs so far plus one chunk's
-    temporaries) and the sort into K3 (stored pairs plus key and permutation), plus the
-    patch-pair accumulators. num_pairs : unordered facet pairs; keep_facets : the facet
-    table is kept (else only a chunk lives at a time); num_patches : patches reduced into.
+    Facet table: the larger of the chunk phase (stored pairs so far plus one chunk's
+    temporaries) and the sort into K3 (stored pairs plus key and permutation). Patch table:
+    PATCH_PAIR_BYTES per candidate patch pair. num_pairs : unordered facet pairs kept
+    (0 without a facet table); num_patch_pairs : candidate patch pairs (0 without patches).
     """
-    stored = num_pairs * STORED_BYTES_PER_PAIR if keep_facets else 0
-    chunk = min(num_pairs, CHUNK_PAIRS) * (CHUNK_TEMP_BYTES_PER_PAIR + (0 if keep_facets else STORED_BYTES_PER_PAIR))
-    sort = num_pairs * SORT_BYTES_PER_PAIR if keep_facets else 0
-    patches = num_patches * (num_patches + 1) // 2 * PATCH_ACC_BYTES_PER_PAIR
-    return max(stored + chunk, stored + sort) + patches
+    stored = num_pairs * STORED_BYTES_PER_PAIR
+    chunk = min(num_pairs, CHUNK_PAIRS) * CHUNK_TEMP_BYTES_PER_PAIR
+    sort = num_pairs * SORT_BYTES_PER_PAIR
+    return max(stored + chunk, stored + sort) + num_patch_pairs * PATCH_PAIR_BYTES
 
 
-def check_memory(num_pairs, num_facets, max_span=None, keep_facets=True, num_patches=0):
+def check_memory(num_pairs, num_facets, max_span=None, num_patch_pairs=0):
     """Refuse, before building, a table that will not fit in the available memory."""
     import psutil
 
-    need = estimate_bytes(num_pairs, keep_facets, num_patches)
+    need = estimate_bytes(num_pairs, num_patch_pairs)
     available = psutil.virtual_memory().available
     if need > 0.8 * available:
         advice = "a smaller max_span" if max_span is not None else "max_span (the hand's span, `--max-span L`)"
         raise ResourceError(
-            f"the pair table for {num_facets} facets ({num_pairs:,} pairs) needs about {need / 2**30:.1f} GiB, "
-            f"but only {available / 2**30:.1f} GiB is available; decimate the mesh or set {advice}"
+            f"the pair table for {num_facets} facets ({num_pairs:,} facet pairs, {num_patch_pairs:,} patch pairs) "
+            f"needs about {need / 2**30:.1f} GiB, but only {available / 2**30:.1f} GiB is available; "
+            f"decimate the mesh or set {advice}"
         )
     return need
 
@@ -126,15 +129,22 @@ class PairTable:
                 "max_span": np.array(span)}
 
     @classmethod
-    def from_arrays(cls, arrays, features):
-        span = float(arrays["max_span"])
+    def from_arrays(cls, arrays, features, sizes, prefixes=("table_", "features_")):
+        """The table of a model file. arrays : the table's arrays; features : its PairFeatures;
+        sizes : {"n": (facets or patches the pairs index, array that says so)};
+        prefixes : of the table's and the features' arrays in the file (for messages)."""
+        check_arrays(features.to_arrays(), STORED_FEATURES, sizes, prefixes[1], ("dmin_exact", "alpha_hi"))
+        check_arrays(arrays, STORED_TABLE, sizes, prefixes[0])
         bins = tuple(int(b) for b in arrays["bins"])
-        offsets = arrays["offsets"]
-        if len(offsets) != int(np.prod(bins)) + 1 or offsets[-1] != len(features.k):
-            from contactpose.errors import ModelFileError
-
-            raise ModelFileError("model file is corrupt: the table offsets do not match its pairs")
-        return cls(features, offsets, bins, arrays["mins"], arrays["widths"], None if np.isnan(span) else span)
+        check_arrays(arrays, {"offsets": ("i", ("B",))}, {"B": (int(np.prod(bins)) + 1, prefixes[0] + "bins")},
+                     prefixes[0])
+        check_pointers(prefixes[0] + "offsets", arrays["offsets"], len(features.k))
+        if not np.all(arrays["widths"] > 0):
+            raise ModelFileError(f"array {prefixes[0] + 'widths'!r} must be positive, got {arrays['widths'].tolist()}")
+        span = float(arrays["max_span"])
+        if not (np.isnan(span) or 0 < span < np.inf):
+            raise ModelFileError(f"array {prefixes[0] + 'max_span'!r} must be a positive length or NaN, got {span}")
+        return cls(features, arrays["offsets"], bins, arrays["mins"], arrays["widths"], None if np.isnan(span) else span)
 
     def query(self, distance, angle, sigma_distance, sigma_angle, bounds="exact"):
         """Admissible unordered pairs for one finger pair (eq. 5 plus the exact test).

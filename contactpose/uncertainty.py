@@ -35,7 +35,7 @@ import logging
 import sys
 import time
 import warnings
-from dataclasses import dataclass
+from dataclasses import KW_ONLY, dataclass
 
 import emcee
 import numpy as np
@@ -432,35 +432,26 @@ def _initial_walkers(log_prob, L, n_walkers, scale, rng, tries=30):
 # --------------------------------------------------------------- summaries ---
 
 @dataclass
-class PoseSamples:
-    """Posterior samples of one hypothesis's pose.
+class PoseSamples(EnsembleRun):
+    """Posterior samples of one hypothesis's pose: the :class:`EnsembleRun` that drew them
+    (xi : (N, 6) tangent coordinates at T_opt, rotation first, radians; translation in the
+    object frame at T_opt, length units; log_prob : (N,) log-posterior up to a constant; the
+    chain's tau, acceptance, steps, ...) and, keyword-only:
 
-    poses : (N, 4, 4) T_world_object; xi : (N, 6) tangent coordinates at T_opt (rotation
-    first, radians; translation in the object frame at T_opt, length units); log_prob : (N,)
-    log-posterior (up to a constant); T_opt : (4, 4) chart centre; facets : (n,) int;
+    poses : (N, 4, 4) T_world_object; T_opt : (4, 4) chart centre; facets : (n,) int;
     mean : (6,); covariance : (6, 6) sample covariance of xi (rotation first);
     intervals : {level: (6, 2)} central credible intervals per axis of xi, rotation rows in
-    degrees, translation rows in length units; tau : (6,) autocorrelation time (steps);
-    acceptance, steps, burn, thin, n_walkers, converged, seconds : see :class:`EnsembleRun`;
+    degrees, translation rows in length units;
     laplace_covariance : (6, 6) the covariance the walkers started from, for comparison.
     """
 
+    _: KW_ONLY
     poses: np.ndarray
-    xi: np.ndarray
-    log_prob: np.ndarray
     T_opt: np.ndarray
     facets: np.ndarray
     mean: np.ndarray
     covariance: np.ndarray
     intervals: dict
-    tau: np.ndarray
-    acceptance: float
-    steps: int
-    burn: int
-    thin: int
-    n_walkers: int
-    converged: bool
-    seconds: float
     laplace_covariance: np.ndarray | None = None
 
     def credible_interval(self, level):
@@ -498,9 +489,8 @@ def summarize(run, posterior, laplace_covariance=None):
     xi = run.xi
     mean = xi.mean(axis=0)
     cov = np.cov(xi, rowvar=False) if len(xi) > 1 else np.full((xi.shape[1],) * 2, np.nan)
-    out = PoseSamples(posterior.poses(xi), xi, run.log_prob, posterior.T_opt,
-                      posterior.facets, mean, cov, {}, run.tau, run.acceptance, run.steps, run.burn, run.thin,
-                      run.n_walkers, run.converged, run.seconds, laplace_covariance)
+    out = PoseSamples(**vars(run), poses=posterior.poses(xi), T_opt=posterior.T_opt, facets=posterior.facets,
+                      mean=mean, covariance=cov, intervals={}, laplace_covariance=laplace_covariance)
     out.intervals = {level: out.credible_interval(level) for level in LEVELS}
     return out
 

@@ -26,7 +26,6 @@ results/baselines/tuning/ (the ICP tuning sweep).
 
 from __future__ import annotations
 
-import argparse
 import functools
 import logging
 import sys
@@ -261,9 +260,7 @@ def plot(out_dir):
         fig.legend(handles, labels, loc="upper center", bbox_to_anchor=(0.5, 0.02), ncol=len(labels), frameon=False)
         objs = ", ".join(dict.fromkeys(c["object"]))
         fig.suptitle(f"Same grasps for every method ({objs}; 4 fingers, 0.5 mm, 1°)", y=1.0)
-        fig.tight_layout()
         paths = sweep.save_figure(fig, out, NAME)
-        plt.close(fig)
     (out / "summary.md").write_text(summary_markdown(c))
     return paths
 
@@ -283,27 +280,22 @@ def summary_markdown(c):
     return "\n".join(lines) + "\n"
 
 
+def summary(out_dir):
+    """The table of results (summary.md, written by :func:`plot`)."""
+    return (Path(out_dir) / "summary.md").read_text()
+
+
 def main(argv=None):
-    parser = sweep.add_arguments(argparse.ArgumentParser(description=__doc__.split("\n")[0]))
-    args = parser.parse_args(argv)
-    sweep.setup_logging(NAME)
-    cfg = sweep.load_config(NAME, args.quick)
-    out = sweep.results_dir(args, NAME)
-    workers = sweep.workers_for(args, cfg)
+    """Tune ICP on its own sweep (results/baselines/tuning/), then run every method."""
+    args, cfg, out = sweep.start(NAME, __doc__, argv)
     if not args.plot_only:
-        report = sweep.run(tuning_sweep(cfg), out / "tuning", workers=workers, scheduler=args.scheduler,
-                           resume=not args.fresh)
-        log.info("baselines tuning: ran %d cells, %.1f s", report.ran, report.seconds)
+        sweep.run_logged(tuning_sweep(cfg), out / "tuning", args, cfg)
     radius, corr = pick_icp(out / "tuning" / sweep.RESULTS_CSV)
     log.info("ICP tuned: patch radius %.3g m, max correspondence %.3g m", radius, corr)
-    cfg = {**cfg, "icp_patch_radius_tuned": radius, "icp_max_correspondence_tuned": corr}
     if not args.plot_only:
-        report = sweep.run(eval_sweep(cfg), out, workers=workers, scheduler=args.scheduler, resume=not args.fresh)
-        log.info("%s: ran %d cells, skipped %d, %.1f s", NAME, report.ran, report.skipped, report.seconds)
-    plot(out)
-    print((out / "summary.md").read_text())
-    print(f"written: {out}")
-    return 0
+        cfg = {**cfg, "icp_patch_radius_tuned": radius, "icp_max_correspondence_tuned": corr}
+        sweep.run_logged(eval_sweep(cfg), out, args, cfg)
+    return sweep.finish(out, plot, summary)
 
 
 if __name__ == "__main__":

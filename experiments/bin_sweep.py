@@ -16,9 +16,7 @@ within the tolerance) are queried. Per grasp, summed over the 6 finger pairs:
 
 from __future__ import annotations
 
-import argparse
 import functools
-import logging
 import sys
 import time
 from pathlib import Path
@@ -31,7 +29,6 @@ from contactpose.model import ObjectModel
 from contactpose.table import bin_index, query_limits
 
 NAME = "bin_sweep"
-log = logging.getLogger(NAME)
 AXES = ("p_dmax", "p_dmin", "p_alpha")
 
 
@@ -143,10 +140,7 @@ def plot(out_dir):
                                label=f"{o} (m = {int(c['facets'][c['object'] == o][0])})") for o in objs]
         fig.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, 0.02), ncol=len(handles), frameon=False)
         fig.suptitle(f"Bins of K3: one axis varied, others at the default {tuple(default)}", y=1.0)
-        fig.tight_layout()
-        paths = sweep.save_figure(fig, out, NAME)
-        plt.close(fig)
-    return paths
+        return sweep.save_figure(fig, out, NAME)
 
 
 def summary(out_dir):
@@ -164,19 +158,7 @@ def summary(out_dir):
 
 
 def main(argv=None):
-    parser = sweep.add_arguments(argparse.ArgumentParser(description=__doc__.split("\n")[0]))
-    args = parser.parse_args(argv)
-    sweep.setup_logging(NAME)
-    cfg = sweep.load_config(NAME, args.quick)
-    out = sweep.results_dir(args, NAME)
-    if not args.plot_only:
-        report = sweep.run(make_sweep(cfg), out, workers=sweep.workers_for(args, cfg), scheduler=args.scheduler,
-                           resume=not args.fresh)
-        log.info("%s: ran %d cells, skipped %d, %.1f s", NAME, report.ran, report.skipped, report.seconds)
-    plot(out)
-    print(summary(out))
-    print(f"written: {out}")
-    return 0
+    return sweep.main(NAME, __doc__, make_sweep, plot, summary, argv)
 
 
 if __name__ == "__main__":

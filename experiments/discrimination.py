@@ -14,8 +14,9 @@ adding to the one before:
 2. ``direction``  + direction constraints (exact Δmin, h_kl / h_lk), facet level, no
                   handedness test;
 3. ``patches``    + patches and the handedness test: the full default search, ``localize``;
-4. ``in_facet``   + the in-facet check: keep the hypotheses whose χ² with the lateral
-                  residual (the default ranking) fits within noise (``fit_threshold``);
+4. ``in_facet``   + the in-facet check: keep the hypotheses that some pose near their
+                  closed form may fit within noise, triangles included
+                  (``contactpose.infacet.within_noise``, a lower bound on the best χ²);
 5. ``free_space`` + the free-space check (``contactpose.freespace``, ray of one finger radius).
 
 Stages 1–3 rank by the plane χ² (normal and point-to-plane residuals of the closed-form
@@ -63,6 +64,7 @@ from contactpose import objects, simulate
 from contactpose import touch as touchmod
 from contactpose.contacts import Tolerance, pair_conditions
 from contactpose.freespace import free_space_violations
+from contactpose.infacet import within_noise
 from contactpose.hypotheses import admissible_pairs, join_tuples
 from contactpose.localize import MAX_CLASS_HYPOTHESES, fit_threshold, localize, pose_classes
 from contactpose.metrics import SAME_CLASS_ADDS_FRAC, adds, pose_success
@@ -209,8 +211,9 @@ def run_grasp(model, name, i, grasp, tolerance, args):
     row.update(stage_stats(model, grasp, "patches", a.facets, truth, key, view))
     row["patches_ms"] = 1000 * result.timing["total"]
     row["status"] = result.status
-    # stage 4: the in-facet check as a filter (the default ranking, χ² with the lateral term)
-    fits = np.flatnonzero(a.chi2 <= fit_threshold(grasp.contacts.n))
+    # stage 4: the in-facet check as a filter (contactpose.infacet: a lower bound on the best χ²
+    # with the lateral term over the poses near the closed form)
+    fits = np.flatnonzero(within_noise(model, grasp.contacts, a, result.tolerance, fit_threshold(grasp.contacts.n)))
     row.update(stage_stats(model, grasp, "in_facet", a.facets[fits], truth, key, a.take(fits)))
     # a true tuple that the search found but the fit test dropped: was its pose a family?
     found = np.flatnonzero((key(a.facets) == truth).all(axis=1)) if len(a.facets) else []

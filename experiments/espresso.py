@@ -46,7 +46,6 @@ summary.json, config.json, espresso.png (drawn from grasps.csv alone)::
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import math
 import os
@@ -56,7 +55,7 @@ import numpy as np
 import open3d as o3d
 import trimesh
 
-from contactpose import simulate
+from contactpose import simulate, sweep
 from contactpose.contacts import Contacts, Tolerance
 from contactpose.espresso import SIZE, espresso_machine, espresso_parts
 from contactpose.localize import localize
@@ -203,14 +202,6 @@ def summarize(rows, extra):
     }
 
 
-def write_csv(path, rows):
-    keys = list(dict.fromkeys(k for r in rows for k in r))
-    with open(path, "w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=keys)
-        writer.writeheader()
-        writer.writerows(rows)
-
-
 def plot(csv_path, png_path):
     """Pose-error and timing histograms, from grasps.csv alone."""
     import matplotlib
@@ -219,8 +210,7 @@ def plot(csv_path, png_path):
     import matplotlib.pyplot as plt
     from matplotlib.ticker import MaxNLocator
 
-    with open(csv_path, newline="") as fh:
-        rows = list(csv.DictReader(fh))
+    rows = sweep.read_rows(csv_path)
     num = lambda key: np.array([float(r[key]) if r[key] not in ("", "nan") else np.nan for r in rows])
     ok = np.array([r["success"] == "True" for r in rows])
     rot, trans, secs = num("rot_err_deg"), num("trans_err_mm"), num("seconds")
@@ -318,7 +308,7 @@ def run_grasps(model, pool, model_error, args, csv_path):
         rows.append(row)
         print(f"grasp {i}: {row['status']}, {row['hypotheses']} hypotheses, {row['seconds']:.2f} s, "
               f"rotation {row['rot_err_deg']:.2f} deg, translation {row['trans_err_mm']:.1f} mm", flush=True)
-        write_csv(csv_path, rows)
+        sweep.write_rows(csv_path, rows)
     return rows
 
 

@@ -14,9 +14,7 @@ the symmetric twins of the box and carton).
 
 from __future__ import annotations
 
-import argparse
 import functools
-import logging
 import sys
 from pathlib import Path
 
@@ -27,7 +25,6 @@ from contactpose.localize import STATUSES, localize
 from contactpose.model import ObjectModel
 
 NAME = "fingers_sweep"
-log = logging.getLogger(NAME)
 
 
 def task(settings, rng, *, cfg):
@@ -110,10 +107,7 @@ def plot(out_dir):
             ax.set_xlabel("fingers n")
             ax.set_xticks(ns)
         axes[2].legend(loc="upper right", frameon=False)
-        fig.tight_layout()
-        paths = sweep.save_figure(fig, out, NAME)
-        plt.close(fig)
-    return paths
+        return sweep.save_figure(fig, out, NAME)
 
 
 def summary(out_dir):
@@ -130,19 +124,7 @@ def summary(out_dir):
 
 
 def main(argv=None):
-    parser = sweep.add_arguments(argparse.ArgumentParser(description=__doc__.split("\n")[0]))
-    args = parser.parse_args(argv)
-    sweep.setup_logging(NAME)
-    cfg = sweep.load_config(NAME, args.quick)
-    out = sweep.results_dir(args, NAME)
-    if not args.plot_only:
-        report = sweep.run(make_sweep(cfg), out, workers=sweep.workers_for(args, cfg), scheduler=args.scheduler,
-                           resume=not args.fresh)
-        log.info("%s: ran %d cells, skipped %d, %.1f s", NAME, report.ran, report.skipped, report.seconds)
-    plot(out)
-    print(summary(out))
-    print(f"written: {out}")
-    return 0
+    return sweep.main(NAME, __doc__, make_sweep, plot, summary, argv)
 
 
 if __name__ == "__main__":

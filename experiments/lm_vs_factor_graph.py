@@ -16,10 +16,12 @@ where the truth does (ADD-S < SAME_CLASS_ADDS_FRAC · diameter, so symmetric twi
 ``strict``: rotation < 5° and translation < 5 % of the diameter.
 
 Parts: ``sweep`` (contact noise and prior noise, four objects), ``acceptance`` (prior on
-the near-symmetric box and cylinder, ≥ 300 grasps each), ``outlier`` (n = 5, one point
-moved by 20 % of the diameter; hypotheses by leave-one-out, see :func:`outlier_hypotheses`),
+objects whose contacts alone are ambiguous: box, cylinder and the two-fold symmetric
+twin_rock, ≥ 300 grasps each, through ``localize(..., solver="factor-graph")``), ``outlier``
+(n = 5, one point moved by 20 % of the diameter, through ``localize(..., max_outliers=1)``),
 ``speed`` (refinement time per hypothesis, Jacobian check). Writes CSV + config under
-results/lm_vs_factor_graph/ and draws the figures from the CSVs alone::
+results/lm_vs_factor_graph/ (rows of the parts run replace that part's rows in grasps.csv)
+and draws the figures from the CSVs alone::
 
     .venv/bin/python experiments/lm_vs_factor_graph.py            # full run
     .venv/bin/python experiments/lm_vs_factor_graph.py --quick    # smoke run, ~1 min
@@ -41,8 +43,7 @@ import numpy as np
 
 from contactpose import objects, simulate
 from contactpose.contacts import Contacts, Tolerance
-from contactpose.geometry import point_triangle_distance
-from contactpose.localize import PosePrior, localize
+from contactpose.localize import OUTLIER_PENALTY, PosePrior, localize
 from contactpose.metrics import SAME_CLASS_ADDS_FRAC, adds, pose_success, rotation_error_deg, translation_error
 from contactpose.model import ObjectModel
 from contactpose.residuals import paper_cost, paper_offset_residuals, normal_residuals
@@ -52,6 +53,8 @@ from contactpose.solvers.lm import fit_lm_all
 log = logging.getLogger("lm_vs_factor_graph")
 
 AMBIGUOUS_OBJECTS = ("box", "cylinder")
+#: Acceptance 1: contacts alone leave a discrete choice (symmetric twins, equally fitting poses).
+ACCEPTANCE_OBJECTS = ("box", "cylinder", "twin_rock")
 DISTINCT_OBJECTS = ("banana", "rock")
 #: (σ_x as a fraction of the diameter, σ_n in degrees), sensor noise levels of the sweep.
 CONTACT_NOISE = ((0.001, 0.5), (0.0025, 1.0), (0.005, 2.0), (0.0075, 3.0))
@@ -62,10 +65,8 @@ DEFAULT_PRIOR = (10.0, 0.05)
 #: The paper's LM runs on this many of the best closed-form hypotheses (it would run on all).
 LM_CANDIDATES = 20
 OUTLIER_FRAC = 0.20
-#: Leave-one-out: keep this many hypotheses of each 4-contact subset.
-OUTLIER_PER_SUBSET = 20
 METHODS = ("closed-form", "paper-lm", "fg", "fg-prior")
-OUTLIER_METHODS = ("closed-form", "paper-lm", "fg-none", "fg-huber", "fg-cauchy")
+OUTLIER_METHODS = ("closed-form", "paper-lm", "fg-none", "fg-huber", "fg-cauchy", "fg-huber-all")
 FULL = dict(sweep_grasps=60, acceptance_grasps=300, outlier_grasps=300, speed_refinements=200, jacobian_trials=200)
 QUICK = dict(sweep_grasps=4, acceptance_grasps=15, outlier_grasps=10, speed_refinements=60, jacobian_trials=20)
 
@@ -169,7 +170,8 @@ def same_class(model, T, T_ref):
 def sweep(models, n_grasps, rng):
     """Contact-noise levels at the default prior, and prior levels at the default contact noise."""
     rows = []
-    for name, model in models.items():
+    for name in AMBIGUOUS_OBJECTS + DISTINCT_OBJECTS:
+        model = models[name]
         for sx_frac, sn_deg in CONTACT_NOISE:
             priors = PRIOR_NOISE if (sx_frac, sn_deg) == DEFAULT_CONTACT else (DEFAULT_PRIOR,)
             for _ in range(n_grasps):
@@ -181,50 +183,69 @@ def sweep(models, n_grasps, rng):
 
 
 def acceptance(models, n_grasps, rng):
-    """Prior 10° / 5 % on the near-symmetric objects, default contact noise."""
+    """Prior 10° / 5 % on objects whose contacts alone are ambiguous, default contact noise,
+    through ``localize(..., solver="factor-graph")`` with and without the prior."""
     rows = []
-    for name in AMBIGUOUS_OBJECTS:
+    for name in ACCEPTANCE_OBJECTS:
         model = models[name]
         for _ in range(n_grasps):
             g = simulate.grasp(model, rng, n=4, position_noise=DEFAULT_CONTACT[0] * model.diameter,
                                normal_noise_deg=DEFAULT_CONTACT[1])
-            rows += run_grasp(model, name, g, *DEFAULT_CONTACT, (DEFAULT_PRIOR,), rng, "acceptance")
+            rows += acceptance_grasp(model, name, g, rng)
         log.info("acceptance %s: %d grasps", name, n_grasps)
+    return rows
+
+
+def acceptance_grasp(model, name, g, rng):
+    """fg-prior and fg (library path) on one grasp. -> two CSV rows
+
+    ``right_hypothesis``: the top-1 is within the strict thresholds (5°, 5 %) of the same
+    refinement run on the true facet tuple alone (the oracle), i.e. the factor graph chose
+    the right hypothesis, twin included; ``free_err_sigma``: for grasps whose true tuple
+    leaves translation free, the top-1's error along the free directions over the prior's σ_t;
+    ``rescued``: 0, or 1 when ``localize`` searched again at wider tolerances, 2 when it also
+    added the prior-pose assignment (its warning).
+    """
+    sx, (sr, st) = DEFAULT_CONTACT[0] * model.diameter, DEFAULT_PRIOR
+    prior = noisy_prior(g.pose, sr, st * model.diameter, rng)
+    tol = Tolerance.from_noise(sx, DEFAULT_CONTACT[1])
+    true_arrays = fg.closed_form_arrays(model, g.contacts, g.facets[None], tol)
+    fit = true_arrays.fit
+    base = dict(part="acceptance", object=name, sigma_x_frac=DEFAULT_CONTACT[0], sigma_n_deg=DEFAULT_CONTACT[1],
+                prior_rot_deg=sr, prior_trans_frac=st, determined=int(not fit.underdetermined[0]),
+                free_translation=int(fit.free_translation_mask[0].sum()), free_rotation=int(fit.free_rotation_mask[0]),
+                reachable=-1)
+    rows = []
+    for method, p in (("fg-prior", prior), ("fg", None)):
+        oracle = fg.refine_hypotheses(model, g.contacts, true_arrays, tol, prior=p).poses[0]
+        clock = time.perf_counter()
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            r = localize(model, g.contacts, position_noise=sx, normal_noise_deg=DEFAULT_CONTACT[1], prior=p,
+                         solver="factor-graph")
+        seconds = time.perf_counter() - clock
+        rescued = [str(w.message) for w in caught if "searched again" in str(w.message)]
+        T = r.best.pose if r.best is not None else None
+        free = fit.free_translation[0][fit.free_translation_mask[0]]
+        err = np.nan if T is None or not len(free) else float(np.linalg.norm(free @ (T[:3, 3] - g.pose[:3, 3])))
+        rows.append(dict(base, method=method, seconds=seconds, n_hyp=r.num_hypotheses, status=r.status,
+                         rescued=2 if any("best-fitting facet" in m for m in rescued) else int(bool(rescued)),
+                         ambiguous=int(r.status == "ambiguous"),
+                         p_top=r.best.probability if r.best is not None else np.nan,
+                         right_hypothesis=int(T is not None and bool(pose_success(T, oracle, model.diameter))),
+                         free_err_sigma=err / (st * model.diameter), **score(model, T, g.pose)))
     return rows
 
 
 # ----------------------------------------------------------------- outlier ---
 
-def outlier_hypotheses(model, contacts, tol):
-    """5-contact facet tuples for contacts of which one may be far off (no outlier handling
-    in ``localize``): for each contact j, ``localize`` the other four (normal tolerance),
-    keep their best OUTLIER_PER_SUBSET tuples and give contact j the facet that best fits it
-    under that tuple's pose (whitened point-to-triangle distance plus normal residual).
-    Adds ``localize`` on all contacts. -> HypothesisArrays (closed-form, ranked by χ²)
-    """
-    n = contacts.n
-    valid = np.flatnonzero(model.planes.valid)
-    tuples = []
-    for j in range(n):
-        keep = np.delete(np.arange(n), j)
-        sub = Contacts(contacts.points[keep], finger_normals=contacts.finger_normals[keep])
-        arrays = localize(model, sub, position_noise=tol.position_noise,
-                          normal_noise_deg=np.degrees(tol.normal_noise)).hypotheses.arrays
-        arrays = arrays.take(slice(0, OUTLIER_PER_SUBSET))
-        for facets, T in zip(arrays.facets, arrays.poses):
-            p = T[:3, :3].T @ (contacts.points[j] - T[:3, 3])
-            dist = point_triangle_distance(np.broadcast_to(p, (len(valid), 3)), model.triangles[valid])
-            r_n = model.planes.normals[valid] @ T[:3, :3].T + contacts.finger_normals[j]
-            cost = dist**2 / tol.position_noise**2 + np.sum(r_n**2, axis=1) / tol.normal_noise**2
-            full = np.empty(n, dtype=np.int64)
-            full[keep], full[j] = facets, valid[np.argmin(cost)]
-            tuples.append(full)
-    whole = localize(model, contacts, position_noise=tol.position_noise,
-                     normal_noise_deg=np.degrees(tol.normal_noise)).hypotheses.arrays
-    tuples += list(whole.facets[:OUTLIER_PER_SUBSET])
-    if not tuples:
-        return fg.closed_form_arrays(model, contacts, np.zeros((0, n), np.int64), tol)
-    return fg.closed_form_arrays(model, contacts, np.unique(np.array(tuples), axis=0), tol)
+def completed(model, contacts, arrays, tol):
+    """Facet tuples of ``arrays`` with each unassigned finger given its best-fitting facet
+    under the hypothesis's closed-form pose, for methods that assign every finger. -> (H, n)"""
+    facets = arrays.facets.copy()
+    for h in np.flatnonzero((facets < 0).any(axis=1)):
+        facets[h] = np.where(facets[h] < 0, fg.nearest_fit_facets(model, contacts, arrays.poses[h], tol), facets[h])
+    return facets
 
 
 def displaced_grasp(model, rng, n=5):
@@ -241,42 +262,62 @@ def displaced_grasp(model, rng, n=5):
 
 def outlier(models, n_grasps, rng):
     rows = []
-    sx_frac, sn_deg = DEFAULT_CONTACT
     for name in DISTINCT_OBJECTS:
         model = models[name]
-        tol = Tolerance.from_noise(sx_frac * model.diameter, sn_deg)
         for _ in range(n_grasps):
             g, j = displaced_grasp(model, rng)
-            clock = time.perf_counter()
             with warnings.catch_warnings():  # "contacts span more than the diameter": the outlier
                 warnings.simplefilter("ignore", UserWarning)
-                arrays = outlier_hypotheses(model, g.contacts, tol)
-            t_h = time.perf_counter() - clock
-            base = dict(part="outlier", object=name, sigma_x_frac=sx_frac, sigma_n_deg=sn_deg,
-                        n_hyp=len(arrays.cost), determined=1, prior_rot_deg=np.nan, prior_trans_frac=np.nan,
-                        ambiguous=0, reachable=-1, right_hypothesis=-1, p_top=np.nan)
-            if len(arrays.cost) == 0:
-                rows += [dict(base, method=m, seconds=t_h, **score(model, None, g.pose)) for m in OUTLIER_METHODS]
-                continue
-            rows.append(dict(base, method="closed-form", seconds=t_h, **score(model, arrays.poses[0], g.pose)))
-            clock = time.perf_counter()
-            normals = model.planes.normals[arrays.facets]
-            offsets = model.planes.offsets[arrays.facets]
-            T_lm = np.array([fit_lm_all(nk[None], dk[None], g.contacts.points, g.contacts.finger_normals, T0)[0][0]
-                             for nk, dk, T0 in zip(normals, offsets, arrays.poses)])
-            r_n = normal_residuals(T_lm[:, :3, :3], normals, g.contacts.finger_normals)
-            cost = paper_cost(r_n, paper_offset_residuals(T_lm[:, :3, 3], g.contacts.points,
-                                                          g.contacts.finger_normals, offsets))
-            rows.append(dict(base, method="paper-lm", seconds=t_h + time.perf_counter() - clock,
-                             **score(model, T_lm[int(np.argmin(cost))], g.pose)))
-            for robust in ("none", "huber", "cauchy"):
-                clock = time.perf_counter()
-                ref = fg.refine_hypotheses(model, g.contacts, arrays, tol, robust=robust, k=0)
-                amb = int(fg.ambiguous(model, ref).ambiguous)
-                rows.append(dict(base, method=f"fg-{robust}", seconds=t_h + time.perf_counter() - clock,
-                                 ambiguous=amb, reachable=reachable(model, ref, g.pose), p_top=ref.probability[0],
-                                 **score(model, ref.poses[0], g.pose)))
+                rows += outlier_grasp(model, name, g, j)
         log.info("outlier %s: %d grasps", name, n_grasps)
+    return rows
+
+
+def outlier_grasp(model, name, g, j):
+    """Every outlier method on one displaced grasp. -> CSV rows
+
+    ``localize(..., max_outliers=1)`` gives the shared hypothesis set (each finger may be
+    left unassigned, at OUTLIER_PENALTY): ``closed-form`` is its top row; ``paper-lm`` runs
+    eq. (7) LM from each row's closed form on the completed tuple (:func:`completed`) and
+    keeps the least ℒ; ``fg-<kernel>`` is ``localize(..., max_outliers=1,
+    solver="factor-graph", robust=<kernel>)``; ``fg-huber-all`` the default factor graph
+    without ``max_outliers`` (every finger assigned).
+    """
+    sx, sn = DEFAULT_CONTACT[0] * model.diameter, DEFAULT_CONTACT[1]
+    tol = Tolerance.from_noise(sx, sn)
+    opts = dict(position_noise=sx, normal_noise_deg=sn)
+    clock = time.perf_counter()
+    arrays = localize(model, g.contacts, max_outliers=1, **opts).hypotheses.arrays
+    t_h = time.perf_counter() - clock
+    base = dict(part="outlier", object=name, sigma_x_frac=DEFAULT_CONTACT[0], sigma_n_deg=sn, n_hyp=len(arrays.cost),
+                determined=1, prior_rot_deg=np.nan, prior_trans_frac=np.nan, ambiguous=0, right_hypothesis=-1,
+                p_top=np.nan, displaced=j)
+    found = len(arrays.cost) > 0
+    rows = [dict(base, method="closed-form", seconds=t_h, reachable=-1,
+                 **score(model, arrays.poses[0] if found else None, g.pose))]
+    clock = time.perf_counter()
+    T_lm = None
+    if found:
+        facets = completed(model, g.contacts, arrays, tol)
+        normals, offsets = model.planes.normals[facets], model.planes.offsets[facets]
+        T_all = np.array([fit_lm_all(nk[None], dk[None], g.contacts.points, g.contacts.finger_normals, T0)[0][0]
+                          for nk, dk, T0 in zip(normals, offsets, arrays.poses)])
+        r_n = normal_residuals(T_all[:, :3, :3], normals, g.contacts.finger_normals)
+        cost = paper_cost(r_n, paper_offset_residuals(T_all[:, :3, 3], g.contacts.points,
+                                                      g.contacts.finger_normals, offsets))
+        T_lm = T_all[int(np.argmin(cost))]
+    rows.append(dict(base, method="paper-lm", seconds=t_h + time.perf_counter() - clock, reachable=-1,
+                     **score(model, T_lm, g.pose)))
+    for method, robust, outliers in (("fg-none", "none", 1), ("fg-huber", "huber", 1), ("fg-cauchy", "cauchy", 1),
+                                     ("fg-huber-all", "huber", 0)):
+        clock = time.perf_counter()
+        r = localize(model, g.contacts, max_outliers=outliers, solver="factor-graph", robust=robust, **opts)
+        seconds = time.perf_counter() - clock
+        best = r.best
+        rows.append(dict(base, method=method, seconds=seconds, n_hyp=r.num_hypotheses,
+                         ambiguous=int(r.status == "ambiguous"), p_top=best.probability if best else np.nan,
+                         reachable=int(best is not None and list(best.outliers) == [j]),
+                         **score(model, best.pose if best else None, g.pose)))
     return rows
 
 
@@ -361,12 +402,21 @@ def summarise(rows):
         groups.setdefault(tuple(str(r[k]) for k in keys), []).append(r)
     out = []
     for key, grp in groups.items():
-        f = {c: np.array([float(r[c]) for r in grp]) for c in
+        f = {c: np.array([float(r.get(c) or "nan") for r in grp]) for c in
              ("success", "strict", "adds_frac", "rot_err_deg", "trans_err_frac", "seconds", "reachable",
-              "ambiguous", "right_hypothesis", "determined", "n_hyp")}
+              "ambiguous", "right_hypothesis", "determined", "n_hyp", "rescued", "free_err_sigma")}
         det = f["determined"] == 1
-        found = f["n_hyp"] > 0
+        rescued = f["rescued"] > 0  # NaN (parts without rescue) compares False
+        found = (f["n_hyp"] > 0) & ~rescued
+        free = np.isfinite(f["free_err_sigma"])
         out.append(dict(zip(keys, key), grasps=len(grp), success=f["success"].mean(), strict=f["strict"].mean(),
+                        strict_determined=_mean(f["strict"][det]), strict_found=_mean(f["strict"][found]),
+                        strict_found_determined=_mean(f["strict"][found & det]),
+                        undetermined_grasps=int((~det).sum()), success_undetermined=_mean(f["success"][~det]),
+                        strict_undetermined=_mean(f["strict"][~det]),
+                        free_within_prior_sigma=_mean(f["free_err_sigma"][free] < 1.0),
+                        rescued_grasps=int(rescued.sum()), success_rescued=_mean(f["success"][rescued]),
+                        strict_rescued=_mean(f["strict"][rescued]),
                         right_hypothesis=_valid_mean(f["right_hypothesis"]), determined_grasps=int(det.sum()),
                         success_determined=f["success"][det].mean() if det.any() else np.nan,
                         found_grasps=int(found.sum()),
@@ -380,6 +430,11 @@ def summarise(rows):
                         flagged_ambiguous=f["ambiguous"].mean(),
                         median_seconds=np.median(f["seconds"])))
     return out
+
+
+def _mean(x):
+    """Mean, NaN when empty."""
+    return float(np.mean(x)) if len(x) else np.nan
 
 
 def _valid_mean(x):
@@ -433,28 +488,32 @@ def plot(out_dir):
         fig.savefig(os.path.join(out_dir, f"lm_vs_factor_graph.{ext}"), dpi=120)
     plt.close(fig)
 
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
+    fig, axes = plt.subplots(1, 2, figsize=(13, 6))
     acc = [s for s in summary if s["part"] == "acceptance"]
-    bars = (("success", "all grasps", None), ("success_found", "search found hypotheses", "//"),
-            ("success_found_determined", "... and contacts determine the pose", "xx"))
-    for i, name in enumerate(AMBIGUOUS_OBJECTS):
+    bars = (("success", "ADD-S, all grasps", ".."), ("strict", "strict, all grasps", None),
+            ("strict_determined", "strict, contacts determine the pose", "//"),
+            ("right_hypothesis", "right hypothesis (= oracle)", "xx"))
+    methods = ("fg-prior", "fg")
+    width = 0.8 / (len(ACCEPTANCE_OBJECTS) * len(bars))
+    for i, name in enumerate(ACCEPTANCE_OBJECTS):
         for j, (col, label, hatch) in enumerate(bars):
             vals = [next((100 * float(s[col]) for s in acc if s["object"] == name and s["method"] == m), np.nan)
-                    for m in METHODS]
-            axes[0].bar(np.arange(len(METHODS)) + 0.14 * (3 * i + j) - 0.35, vals, width=0.14, hatch=hatch,
+                    for m in methods]
+            axes[0].bar(np.arange(len(methods)) + width * (len(bars) * i + j) - 0.4, vals, width=width, hatch=hatch,
                         color=f"C{i}", edgecolor="k", lw=0.4, label=f"{name}: {label}")
-    axes[0].set_xticks(np.arange(len(METHODS)), METHODS)
+    axes[0].set_xticks(np.arange(len(methods)), ["with prior 10° / 5 %", "without prior"])
     axes[0].axhline(99, color="k", lw=0.8, ls=":")
     axes[0].set_ylim(0, 105)
-    axes[0].set_title("prior 10° / 5% on near-symmetric objects, n = 4")
-    axes[0].set_ylabel("top-1 success % (ADD-S < 5% diameter)")
-    axes[0].legend(fontsize=7, loc="lower left")
+    axes[0].set_title("objects whose contacts alone are ambiguous, n = 4")
+    axes[0].set_ylabel("top-1 success % (strict: < 5°, < 5 % diameter; or ADD-S)")
+    axes[0].legend(fontsize=6, loc="upper center", bbox_to_anchor=(0.5, -0.08), ncol=3)
     out = [s for s in summary if s["part"] == "outlier"]
     for i, name in enumerate(DISTINCT_OBJECTS):
         vals = [next((100 * s["success"] for s in out if s["object"] == name and s["method"] == m), np.nan)
                 for m in OUTLIER_METHODS]
         axes[1].bar(np.arange(len(OUTLIER_METHODS)) + 0.4 * i - 0.2, vals, width=0.4, label=name)
-    axes[1].set_xticks(np.arange(len(OUTLIER_METHODS)), OUTLIER_METHODS)
+    axes[1].set_xticks(np.arange(len(OUTLIER_METHODS)), OUTLIER_METHODS, fontsize=7)
+    axes[1].set_ylabel("top-1 success % (ADD-S < 5 % diameter)")
     axes[1].axhline(90, color="k", lw=0.8, ls=":")
     axes[1].set_ylim(0, 105)
     axes[1].set_title(f"n = 5, one point moved {OUTLIER_FRAC:.0%} of the diameter")
@@ -465,10 +524,24 @@ def plot(out_dir):
     plt.close(fig)
 
 
+def _write_config(path, config, parts):
+    """config.json maps each part to the settings of the run that last wrote its rows."""
+    old = {}
+    if os.path.exists(path):
+        with open(path) as fh:
+            old = json.load(fh)
+        if "seed" in old:  # one run's config (older layout): it made all its parts
+            old = {part: old for part in old.get("parts", [])}
+    old.update({part: config for part in parts})
+    with open(path, "w") as fh:
+        json.dump(old, fh, indent=1)
+
+
 def _write_csv(path, rows):
-    fields = list(rows[0])
+    """rows : dicts, whose keys may differ by part (missing cells are written empty)."""
+    fields = list(dict.fromkeys(k for r in rows for k in r))
     with open(path, "w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=fields)
+        writer = csv.DictWriter(fh, fieldnames=fields, restval="")
         writer.writeheader()
         writer.writerows(rows)
 
@@ -491,14 +564,15 @@ def main(argv=None):
     sizes = QUICK if args.quick else FULL
     config = dict(seed=args.seed, quick=args.quick, parts=args.parts, contact_noise=CONTACT_NOISE,
                   default_contact=DEFAULT_CONTACT, prior_noise=PRIOR_NOISE, default_prior=DEFAULT_PRIOR,
-                  lm_candidates=LM_CANDIDATES, outlier_frac=OUTLIER_FRAC, outlier_per_subset=OUTLIER_PER_SUBSET,
+                  lm_candidates=LM_CANDIDATES, outlier_frac=OUTLIER_FRAC, outlier_penalty=OUTLIER_PENALTY,
+                  rescue_widen=fg.RESCUE_WIDEN, acceptance_objects=ACCEPTANCE_OBJECTS,
                   fg_k=fg.DEFAULT_K, huber_k=fg.HUBER_K, cauchy_k=fg.CAUCHY_K,
                   ambiguous_probability=fg.AMBIGUOUS_PROBABILITY, success_adds_frac=SAME_CLASS_ADDS_FRAC,
                   **sizes)
-    with open(os.path.join(args.out, "config.json"), "w") as fh:
-        json.dump(config, fh, indent=1)
+    _write_config(os.path.join(args.out, "config.json"), config, args.parts)
     rng = np.random.default_rng(args.seed)
-    models = {name: ObjectModel.from_mesh(objects.load(name)) for name in AMBIGUOUS_OBJECTS + DISTINCT_OBJECTS}
+    names = dict.fromkeys(AMBIGUOUS_OBJECTS + DISTINCT_OBJECTS + ACCEPTANCE_OBJECTS)
+    models = {name: ObjectModel.from_mesh(objects.load(name)) for name in names}
     for model in models.values():  # compile / load the numba kernels outside the timings
         g = simulate.grasp(model, np.random.default_rng(0), n=4)
         fg.refine_hypotheses(model, g.contacts, localize_arrays(model, g.contacts, 0.001, 1.0)[0],
@@ -511,7 +585,9 @@ def main(argv=None):
     if "outlier" in args.parts:
         rows += outlier(models, sizes["outlier_grasps"], rng)
     if rows:
-        _write_csv(os.path.join(args.out, "grasps.csv"), rows)
+        path = os.path.join(args.out, "grasps.csv")
+        kept = [r for r in _read(path) if r["part"] not in args.parts] if os.path.exists(path) else []
+        _write_csv(path, kept + rows)
         _write_csv(os.path.join(args.out, "summary.csv"), summarise(_read(os.path.join(args.out, "grasps.csv"))))
     if "speed" in args.parts:
         result = speed(models, sizes["speed_refinements"], sizes["jacobian_trials"], rng)

@@ -24,9 +24,7 @@ best hypothesis meets those bounds.
 
 from __future__ import annotations
 
-import argparse
 import functools
-import logging
 import sys
 from pathlib import Path
 
@@ -38,7 +36,6 @@ from contactpose.localize import SOLVERS, PosePrior, localize
 from contactpose.model import ObjectModel
 
 NAME = "noise_sweep"
-log = logging.getLogger(NAME)
 
 
 def variants():
@@ -155,9 +152,7 @@ def plot(out_dir):
                     plt.Line2D([], [], color="k", ls="--", marker="s", mfc="none", ms=3,
                                label="paper (success, error: LM where ≤ cap hypotheses)")]
         fig.legend(handles=handles, loc="upper center", bbox_to_anchor=(0.5, 0.0), ncol=len(handles), frameon=False)
-        fig.tight_layout()
         paths += sweep.save_figure(fig, out, NAME)
-        plt.close(fig)
 
         # solvers, paired: on the grasps where every variant ran (the LM and factor-graph
         # variants are capped), pooled over position noise, against normal noise
@@ -192,9 +187,7 @@ def plot(out_dir):
         axes[2].set_ylim(-0.03, 1.03)
         fig.legend(*axes[0].get_legend_handles_labels(), loc="upper center", bbox_to_anchor=(0.5, 0.02),
                    ncol=len(vs), frameon=False)
-        fig.tight_layout()
         paths += sweep.save_figure(fig, out, f"{NAME}_solvers")
-        plt.close(fig)
     return paths
 
 
@@ -212,19 +205,7 @@ def headline(out_dir):
 
 
 def main(argv=None):
-    parser = sweep.add_arguments(argparse.ArgumentParser(description=__doc__.split("\n")[0]))
-    args = parser.parse_args(argv)
-    sweep.setup_logging(NAME)
-    cfg = sweep.load_config(NAME, args.quick)
-    out = sweep.results_dir(args, NAME)
-    if not args.plot_only:
-        report = sweep.run(make_sweep(cfg), out, workers=sweep.workers_for(args, cfg), scheduler=args.scheduler,
-                           resume=not args.fresh)
-        log.info("%s: ran %d cells, skipped %d, %.1f s", NAME, report.ran, report.skipped, report.seconds)
-    plot(out)
-    print(headline(out))
-    print(f"written: {out}")
-    return 0
+    return sweep.main(NAME, __doc__, make_sweep, plot, headline, argv)
 
 
 if __name__ == "__main__":

@@ -16,9 +16,7 @@ table.md (the timing table with both machines), paper_banana.png/.pdf.
 
 from __future__ import annotations
 
-import argparse
 import functools
-import logging
 import sys
 from pathlib import Path
 
@@ -29,7 +27,6 @@ from contactpose.localize import localize
 from contactpose.model import ObjectModel
 
 NAME = "paper_banana"
-log = logging.getLogger(NAME)
 
 #: The paper's reported figures (§5), milliseconds, and its machine.
 PAPER = {"features": 21.0, "table": 19.0, "offline": 40.0, "sij": 24.0, "tree_mean": 92.0, "tree_min": 16.0,
@@ -202,26 +199,16 @@ def plot(out_dir):
         cpu = machine.get("cpu", "this machine")
         fig.text(0.01, -0.02, f"ours: {cpu} ({machine.get('cores', '?')} cores, one worker); paper: {PAPER_MACHINE}",
                  fontsize=6, ha="left", va="top")
-        fig.tight_layout()
-        paths = sweep.save_figure(fig, out, NAME)
-        plt.close(fig)
-    return paths
+        return sweep.save_figure(fig, out, NAME)
+
+
+def summary(out_dir):
+    """The table of results (table.md, written by :func:`plot`)."""
+    return (Path(out_dir) / "table.md").read_text()
 
 
 def main(argv=None):
-    parser = sweep.add_arguments(argparse.ArgumentParser(description=__doc__.split("\n")[0]))
-    args = parser.parse_args(argv)
-    sweep.setup_logging(NAME)
-    cfg = sweep.load_config(NAME, args.quick)
-    out = sweep.results_dir(args, NAME)
-    if not args.plot_only:
-        report = sweep.run(make_sweep(cfg), out, workers=sweep.workers_for(args, cfg), scheduler=args.scheduler,
-                           resume=not args.fresh)
-        log.info("%s: ran %d cells, skipped %d, %.1f s", NAME, report.ran, report.skipped, report.seconds)
-    plot(out)
-    print((out / "table.md").read_text())
-    print(f"written: {out}")
-    return 0
+    return sweep.main(NAME, __doc__, make_sweep, plot, summary, argv)
 
 
 if __name__ == "__main__":

@@ -34,14 +34,13 @@ Writes results/recall/recall.csv (one row per grasp), summary.csv and config.jso
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import os
 import time
 
 import numpy as np
 
-from contactpose import objects, simulate
+from contactpose import objects, simulate, sweep
 from contactpose.contacts import Tolerance, pair_conditions
 from contactpose.hypotheses import TripleTest, admissible_pairs, join_tuples
 from contactpose.localize import localize
@@ -140,14 +139,6 @@ def summarize(name, rows):
     return out
 
 
-def write_csv(path, rows):
-    keys = list(dict.fromkeys(k for r in rows for k in r))
-    with open(path, "w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=keys)
-        writer.writeheader()
-        writer.writerows(rows)
-
-
 def print_summary(summary):
     cols = [("mesh", "{}"), ("grasps", "{}"), ("fast_recall", "{:.1%}"), ("fast_patch_recall", "{:.1%}"),
             ("facet_search_recall", "{:.1%}"), ("paper_recall", "{:.1%}"), ("fast_hyp_median", "{:.0f}"),
@@ -201,8 +192,8 @@ def main(argv=None):
         rows += mesh_rows
         summary.append(summarize(name, mesh_rows))
         print(f"{name}: {args.grasps} grasps in {time.perf_counter() - start:.1f} s", flush=True)
-        write_csv(os.path.join(args.out, "recall.csv"), rows)
-        write_csv(os.path.join(args.out, "summary.csv"), summary)
+        sweep.write_rows(os.path.join(args.out, "recall.csv"), rows)
+        sweep.write_rows(os.path.join(args.out, "summary.csv"), summary)
     print_summary(summary)
     return 0
 

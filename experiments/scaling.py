@@ -20,10 +20,8 @@ machine, m = 6,767: searched only with per-finger restrictions (no time reported
 
 from __future__ import annotations
 
-import argparse
 import functools
 import json
-import logging
 import sys
 from pathlib import Path
 
@@ -35,7 +33,6 @@ from contactpose.localize import localize
 from contactpose.model import ObjectModel
 
 NAME = "scaling"
-log = logging.getLogger(NAME)
 PAPER_BANANA = {"m": 53, "offline_ms": 40.0, "online_ms": 116.0}
 PAPER_ESPRESSO_M = 6767
 #: Seed of the radial field: one rock shape at every resolution.
@@ -227,10 +224,7 @@ def plot(out_dir):
             ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.2), frameon=False, fontsize=5.5)
         ax1.text(PAPER_ESPRESSO_M, 0.97, "paper: espresso, m = 6,767,\nonly with per-finger\nrestrictions ",
                  transform=ax1.get_xaxis_transform(), fontsize=5.5, ha="right", va="top", color="0.3")
-        fig.tight_layout()
-        paths = sweep.save_figure(fig, out, NAME)
-        plt.close(fig)
-    return paths
+        return sweep.save_figure(fig, out, NAME)
 
 
 def summary(out_dir):
@@ -251,19 +245,7 @@ def summary(out_dir):
 
 
 def main(argv=None):
-    parser = sweep.add_arguments(argparse.ArgumentParser(description=__doc__.split("\n")[0]))
-    args = parser.parse_args(argv)
-    sweep.setup_logging(NAME)
-    cfg = sweep.load_config(NAME, args.quick)
-    out = sweep.results_dir(args, NAME)
-    if not args.plot_only:
-        report = sweep.run(make_sweep(cfg), out, workers=sweep.workers_for(args, cfg), scheduler=args.scheduler,
-                           resume=not args.fresh)
-        log.info("%s: ran %d cells, skipped %d, %.1f s", NAME, report.ran, report.skipped, report.seconds)
-    plot(out)
-    print(summary(out))
-    print(f"written: {out}")
-    return 0
+    return sweep.main(NAME, __doc__, make_sweep, plot, summary, argv)
 
 
 if __name__ == "__main__":

@@ -6,6 +6,7 @@ traceback. Outputs are checked against the library called directly.
 
 import json
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,6 +18,7 @@ from contactpose.model import ObjectModel
 
 from conftest import NORMAL_NOISE_DEG, POSITION_NOISE
 
+EXAMPLE_CONTACTS = Path(__file__).resolve().parent.parent / "examples" / "banana_contacts.json"
 NOISE_ARGS = ["--position-noise", str(POSITION_NOISE), "--normal-noise-deg", str(NORMAL_NOISE_DEG)]
 
 
@@ -142,6 +144,8 @@ def bad_inputs(tmp, npz):
         (["localize", str(tmp / "notamodel.npz"), "--contacts", str(tmp / "good.json")], "model file"),
         (["build-model", str(tmp / "missing.stl")], "does not exist"),
         (["build-model", "banana", "--bins", "0", "4", "4", "-o", str(tmp / "x.npz")], "bins"),
+        (["next-touch", str(npz), "--contacts", str(tmp / "missing.json")], "does not exist"),
+        (["next-touch", str(npz), "--contacts", str(tmp / "good.json"), "--candidates", "0"], "--candidates"),
     ]
 
 
@@ -161,3 +165,21 @@ def test_debug_flag_shows_the_exception(tmp_path, banana_npz):
 
     with pytest.raises(ContactsError):
         main(["--debug", "localize", str(banana_npz), "--contacts", str(tmp_path / "missing.json")])
+
+
+def test_next_touch_suggests_a_probe_that_touches_the_best_pose(tmp_path, capsys, banana_npz):
+    out = tmp_path / "touch.json"
+    argv = ["next-touch", str(banana_npz), "--contacts", str(EXAMPLE_CONTACTS), *NOISE_ARGS, "--candidates", "50",
+            "-o", str(out)]
+    assert main(argv) == 0
+    text = capsys.readouterr().out
+    data = json.loads(out.read_text())
+    touch, pose = data["touch"], np.array(data["classes"][0]["pose"])
+    assert data["status"] == "ok" and re.search(r"^next touch: point \[.+\]  direction \[.+\]$", text, re.M)
+    # independent check: trimesh's ray cast against the banana placed at the best pose
+    posed = objects.load("banana").apply_transform(pose)
+    hits, _, faces = posed.ray.intersects_location([touch["start"]], [touch["direction"]])
+    first = np.argmin(np.linalg.norm(hits - touch["start"], axis=1))
+    np.testing.assert_allclose(hits[first], touch["point"], atol=1e-6)
+    assert np.dot(posed.face_normals[faces[first]], touch["direction"]) < 0  # approaches from outside
+    np.testing.assert_allclose(touch["outcomes"][0]["normal"], posed.face_normals[faces[first]], atol=1e-6)

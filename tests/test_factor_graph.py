@@ -6,6 +6,7 @@ Robust noise models, scipy.optimize.least_squares on the same cost, and the inve
 Gauss-Newton Hessian.
 """
 
+import re
 from functools import partial
 
 import gtsam
@@ -15,12 +16,11 @@ from gtsam.utils.numerical_derivative import numericalDerivative11
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from contactpose import objects, residuals, simulate
+from contactpose import residuals, simulate
 from contactpose.contacts import Contacts, Tolerance
 from contactpose.errors import ContactPoseError
 from contactpose.localize import PosePrior, localize
 from contactpose.metrics import rotation_error_deg, translation_error
-from contactpose.model import ObjectModel
 from contactpose.solvers import factor_graph as fg
 
 #: Jacobians must match numerical derivatives to this, relative to the largest entry.
@@ -28,14 +28,16 @@ JAC_RTOL = 1e-6
 KERNELS = ["none", "huber", "cauchy"]
 
 
-@pytest.fixture(scope="module")
-def rock():
-    return ObjectModel.from_mesh(objects.load("rock"))
+@pytest.fixture
+def rock(rock_model):
+    """The rock of conftest (built once per session)."""
+    return rock_model
 
 
-@pytest.fixture(scope="module")
-def box():
-    return ObjectModel.from_mesh(objects.load("box"))
+@pytest.fixture
+def box(box_model):
+    """The box of conftest (built once per session)."""
+    return box_model
 
 
 def _tolerance(model, position_frac=0.0025, normal_deg=1.0):
@@ -451,3 +453,115 @@ def test_screen_and_polish_match_a_tight_single_pass(rock):
         xi = gtsam.Pose3(tight.poses[0]).localCoordinates(gtsam.Pose3(fast.poses[0]))
         assert xi @ np.linalg.solve(tight.covariance[0], xi) < 0.05**2  # within 0.05 σ
         assert abs(fast.probability[0] - tight.probability[0]) < 0.01
+
+
+# ----------------------------------------------- unassigned fingers, rescue ---
+
+def test_unassigned_finger_equals_refining_the_other_contacts(rock):
+    """A hypothesis with facet -1 for one finger refines exactly like its other contacts alone;
+    its χ² carries localize's OUTLIER_PENALTY on top."""
+    from contactpose.localize import OUTLIER_PENALTY
+
+    rng = np.random.default_rng(23)
+    tol = _tolerance(rock)
+    for robust in KERNELS:
+        g = _grasp(rock, rng, n=5)
+        keep = np.array([0, 1, 3, 4])
+        sub = g.contacts.permuted(keep)
+        sub_arrays = fg.closed_form_arrays(rock, sub, g.facets[keep][None], tol)
+        alone = fg.refine_hypotheses(rock, sub, sub_arrays, tol, robust=robust, params=_tight_params())
+        wild = fg.refine_hypotheses(rock, g.contacts, sub_arrays.widened(keep, 5, OUTLIER_PENALTY), tol,
+                                    robust=robust, params=_tight_params())
+        np.testing.assert_array_equal(wild.facets[0], [*g.facets[:2], -1, *g.facets[3:]])
+        np.testing.assert_allclose(wild.poses[0], alone.poses[0], atol=1e-9)
+        np.testing.assert_allclose(wild.covariance[0], alone.covariance[0], rtol=1e-6,
+                                   atol=1e-9 * np.abs(alone.covariance[0]).max())
+        assert wild.chi2[0] == pytest.approx(alone.chi2[0] + OUTLIER_PENALTY, rel=1e-6)
+        assert wild.contact_chi2[0] == pytest.approx(alone.contact_chi2[0], rel=1e-6)
+
+
+@pytest.mark.filterwarnings("ignore:contacts span")  # the displaced contact may lie off the object
+def test_localize_leaves_a_displaced_finger_out(rock):
+    """localize(max_outliers=1, solver="factor-graph"): the contact moved by 20 % of the
+    diameter is the unassigned finger of the top hypothesis, the true tuple is among the
+    hypotheses, and the top pose places the surface right (ADD-S, the pose-class criterion)
+    unless the status says "ambiguous"."""
+    from contactpose.metrics import SAME_CLASS_ADDS_FRAC, adds
+
+    rng = np.random.default_rng(24)
+    tol = _tolerance(rock)
+    for j in range(3):
+        g = simulate.grasp(rock, rng, n=5, position_noise=tol.position_noise, normal_noise_deg=1.0)
+        points = g.contacts.points.copy()
+        points[j] += 0.2 * rock.diameter * np.array([0.6, -0.8, 0.0])
+        bad = Contacts(points, finger_normals=g.contacts.finger_normals)
+        r = localize(rock, bad, position_noise=tol.position_noise, max_outliers=1, solver="factor-graph")
+        best = r.best
+        np.testing.assert_array_equal(best.outliers, [j])
+        assert np.isnan(best.residuals[j]).all() and np.isfinite(np.delete(best.residuals, j, axis=0)).all()
+        truth = np.where(np.arange(5) == j, -1, g.facets)
+        assert any(np.array_equal(h.facets, truth) for h in r.hypotheses)
+        if r.status != "ambiguous":
+            error = adds(best.pose, g.pose, rock.surface_points, rock.surface_tree)
+            assert error < SAME_CLASS_ADDS_FRAC * rock.diameter
+        assert sum(h.probability for h in r.hypotheses) == pytest.approx(1.0)
+
+
+def test_posterior_along_a_free_direction_is_the_prior(box):
+    """Contacts on the four side faces leave the translation along the box's z axis free:
+    with a prior, the estimate along it is the prior's and so is its marginal variance."""
+    tol = _tolerance(box)
+    sides = [f for f in range(box.num_facets) if abs(box.planes.normals[f, 2]) < 0.5]
+    by_normal = {tuple(np.round(box.planes.normals[f])): f for f in sides}
+    facets = [by_normal[k] for k in [(1.0, 0.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, -1.0, 0.0)]]
+    g = simulate.grasp(box, np.random.default_rng(25), n=4, facets=facets, where="centroid")
+    arrays = fg.closed_form_arrays(box, g.contacts, g.facets[None], tol)
+    assert arrays.fit.free_translation_mask[0].sum() == 1
+    sigma_t = 0.05 * box.diameter
+    offset = 0.3 * sigma_t
+    prior_pose = g.pose.copy()
+    prior_pose[:3, 3] += offset * g.pose[:3, 2]  # along the free (body z) axis
+    prior = PosePrior(prior_pose, sigma_rot_deg=10.0, sigma_trans=sigma_t)
+    ref = fg.refine_hypotheses(box, g.contacts, arrays, tol, prior=prior, robust="none", params=_tight_params())
+    T = ref.poses[0]
+    assert (T[:3, 3] - g.pose[:3, 3]) @ g.pose[:3, 2] == pytest.approx(offset, rel=1e-6)
+    assert ref.covariance[0][5, 5] == pytest.approx(sigma_t**2, rel=1e-6)  # tangent z = body z
+    assert ref.covariance[0][3, 3] < 2.0 * tol.position_noise**2  # determined by the contacts
+
+
+def test_prior_rescues_a_search_that_lost_the_true_tuple(rock, monkeypatch):
+    """One normal 5 σ off: the pair gates drop the true tuple, and the tuples left contradict
+    the prior. With the prior, localize searches again at RESCUE_WIDEN x the tolerances and
+    says so; with the wider search disabled (RESCUE_WIDEN = 1), it adds each contact's best
+    facet under the prior pose."""
+    rng = np.random.default_rng(3)
+    g = simulate.grasp(rock, rng, n=4)
+    normals = g.contacts.object_normals.copy()
+    axis = np.cross(normals[0], [1.0, 0.0, 0.0])
+    normals[0] = Rotation.from_rotvec(np.radians(5.0) * axis / np.linalg.norm(axis)).apply(normals[0])
+    contacts = Contacts(g.contacts.points, object_normals=normals)
+    sx = 0.0025 * rock.diameter
+    plain = localize(rock, contacts, position_noise=sx, solver="factor-graph")
+    assert all(rotation_error_deg(h.pose, g.pose) > 10.0 for h in plain.hypotheses)  # the true tuple is lost
+    prior = PosePrior(g.pose, sigma_rot_deg=2.0, sigma_trans=0.01 * rock.diameter)
+    stages = [(fg.RESCUE_WIDEN, r"searched again with 2x the pair tolerances$"), (1.0, "best-fitting facet")]
+    for widen, message in stages:
+        monkeypatch.setattr(fg, "RESCUE_WIDEN", widen)
+        with pytest.warns(UserWarning, match=message):
+            r = localize(rock, contacts, position_noise=sx, prior=prior, solver="factor-graph")
+        np.testing.assert_array_equal(r.best.facets, g.facets)
+        assert rotation_error_deg(r.best.pose, g.pose) < 3.0
+        assert re.search(message.rstrip("$"), r.hint)   # the result says so too
+
+
+def test_prior_makes_an_underdetermined_grasp_determined(box):
+    """Two contacts leave pose directions free: without a prior the status says so; with a
+    prior the factor graph's covariance is finite and the status no longer does."""
+    g = simulate.grasp(box, np.random.default_rng(26), n=2, position_noise=0.0005, normal_noise_deg=1.0,
+                       noise="bounded")
+    noise = dict(position_noise=0.0005, normal_noise_deg=1.0, solver="factor-graph")
+    assert localize(box, g.contacts, **noise).status == "underdetermined"
+    prior = PosePrior(g.pose, sigma_rot_deg=10.0, sigma_trans=0.05 * box.diameter)
+    r = localize(box, g.contacts, prior=prior, **noise)
+    assert r.status != "underdetermined"
+    assert np.isfinite(r.best.covariance).all()

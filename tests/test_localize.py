@@ -12,6 +12,7 @@ import pytest
 import trimesh
 from scipy.spatial.transform import Rotation
 
+from contactpose import residuals as res
 from contactpose import simulate
 from contactpose.contacts import Contacts, Tolerance, pair_conditions
 from contactpose.errors import ContactPoseError, ContactsError, PriorError
@@ -215,6 +216,46 @@ def test_closed_form_recovers_true_pose_from_exact_data(models, cost):
                             angle_tol=np.radians(1.0), centroids=centroids)
             assert not fit.underdetermined[0]
             assert np.abs(fit.poses()[0] - g.pose).max() < 1e-9
+
+
+def test_fused_residuals_equal_the_per_term_definitions(rock_model):
+    """contact_residuals (one compiled pass) against normal_, offset_ and lateral_residuals,
+    on random poses and facets, so contacts land both inside and outside their triangles."""
+    model = rock_model
+    rng = np.random.default_rng(8)
+    facets = rng.integers(0, model.num_facets, size=(50, 4))
+    R = Rotation.random(50, random_state=9).as_matrix()
+    t = rng.normal(scale=0.02, size=(50, 3))
+    points, fn = rng.normal(scale=0.03, size=(4, 3)), Rotation.random(4, random_state=3).apply([0, 0, 1.0])
+    normals, offsets, tri = model.planes.normals[facets], model.planes.offsets[facets], model.triangles[facets]
+    r_n, r_o, r_l = res.contact_residuals(R, t, normals, offsets, tri, points, fn)
+    p = res.to_object_frame(R, t, points)
+    want_o = res.offset_residuals(p, normals, offsets)
+    assert np.allclose(r_n, res.normal_residuals(R, normals, fn), atol=1e-14)
+    assert np.allclose(r_o, want_o, atol=1e-14)
+    assert np.allclose(r_l, res.lateral_residuals(p, tri, want_o), atol=1e-9)
+    assert (r_l > 0).any() and (r_l == 0).any()
+
+
+def test_free_rotation_is_chosen_from_the_geometry_not_the_frame(carton_model):
+    """Contacts on one flat side leave the rotation about its normal free; the closed form
+    turns the facet centroids' spread onto the contacts' spread, so a rigid motion of the
+    contacts moves the fitted pose by exactly that motion."""
+    model = carton_model
+    rng = np.random.default_rng(11)
+    k = int(np.argmax(model.planes.areas))
+    side = np.flatnonzero(model.planes.normals @ model.planes.normals[k] > 1 - 1e-9)[:3]
+    g = simulate.grasp(model, rng, n=3, facets=side, position_noise=0.0005, normal_noise_deg=0.5)
+    normals, offsets, centroids = (a[side][None] for a in (model.planes.normals, model.planes.offsets,
+                                                           model.centroids))
+    c = g.contacts
+    T = simulate.random_pose(rng, max_translation=0.5)
+    moved = c.transformed(T)
+    a = fit_poses(normals, offsets, c.points, c.finger_normals, angle_tol=np.radians(1.0), centroids=centroids)
+    b = fit_poses(normals, offsets, moved.points, moved.finger_normals, angle_tol=np.radians(1.0),
+                  centroids=centroids)
+    assert a.free_rotation_mask[0]
+    assert np.allclose(T @ a.poses()[0], b.poses()[0], atol=1e-9)
 
 
 def test_two_contacts_leave_one_translation_free(rock_model):

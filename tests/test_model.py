@@ -15,12 +15,17 @@ import pytest
 import trimesh
 from scipy.optimize import minimize
 
-from contactpose import objects, tol
+from contactpose import objects, simulate, tol
+from contactpose.contacts import Tolerance, pair_conditions
 from contactpose.errors import MeshError, ModelFileError, ResourceError
 from contactpose.features import round_down32, round_up32
 from contactpose.geometry import triangle_triangle_dist2
+from contactpose.hypotheses import PairSet, admissible_pairs, join_tuples
 from contactpose.model import FORMAT_VERSION, ObjectModel, facet_planes
+from contactpose.patches import DMIN_GAP_REL, PatchPairs, patch_features
 from contactpose.table import estimate_bytes
+
+from conftest import NORMAL_NOISE_DEG, POSITION_NOISE
 
 FORMATS = ["stl", "obj", "ply", "off", "glb"]
 
@@ -369,8 +374,8 @@ def test_memory_estimate_is_within_25_percent_of_the_build_peak(name, options):
     """Issue 10: the estimate made before a build is within 25 % of the traced numpy peak."""
     model, peak = _traced_build_peak(objects.load(name), **options)
     v = int(model.planes.valid.sum())
-    reduce = model.patch_table is not None
-    estimate = estimate_bytes(v * (v + 1) // 2, model.table is not None, model.patches.count if reduce else 0)
+    p = model.patches.count if model.patch_table is not None else 0
+    estimate = estimate_bytes(v * (v + 1) // 2 if model.table is not None else 0, p * (p + 1) // 2)
     allowance = 2 * 2**20  # mesh-sized temporaries (hull, winding check), not per pair
     assert abs(estimate - peak) <= 0.25 * peak + allowance, (estimate, peak)
 
@@ -479,3 +484,88 @@ def test_float32_rounding_is_outward():
     # tight: one float32 step at most
     assert np.all(np.nextafter(down, np.float32(np.inf)).astype(np.float64) >= x)
     assert np.all(np.nextafter(up, np.float32(-np.inf)).astype(np.float64) <= x)
+
+
+# ------------------------------------------- patch-first construction (issue 10)
+
+def _pair_index(features):
+    """{(k, l): entry} of PairFeatures."""
+    return {(int(k), int(l)): e for e, (k, l) in enumerate(zip(features.k, features.l))}
+
+
+@pytest.mark.parametrize("name, span_frac", [("banana512", None), ("banana512", 0.4), ("rock", None),
+                                             ("carton", 0.5), ("cylinder", None)])
+def test_patch_pair_features_contain_their_member_pairs(name, span_frac):
+    """Every patch-first interval contains the exact union over the patch pair's member facet
+    pairs (within the span), and its Δmin is at most DMIN_GAP_REL · diameter below exact."""
+    mesh = objects.load(name)
+    diameter = ObjectModel.from_mesh(mesh).diameter
+    span = None if span_frac is None else span_frac * diameter
+    model = ObjectModel.from_mesh(mesh, facet_pairs=True, max_span=span)
+    ref = patch_features(model.features, model.patches)
+    new = PatchPairs(model.triangles, model.planes, model.patches, model.diameter, span).features()
+    index = _pair_index(new)
+    e = np.array([index[(int(k), int(l))] for k, l in zip(ref.k, ref.l)])  # KeyError: a pair was dropped
+    slack = 1e-12 * model.diameter  # float64 rounding of the references' own products
+    assert np.all(new.dmin_exact[e] <= ref.dmin_exact)
+    assert np.all(ref.dmin_exact - new.dmin_exact[e] <= DMIN_GAP_REL * model.diameter)
+    assert np.all(new.dmax[e] >= ref.dmax)
+    assert np.all(new.alpha[e] <= ref.alpha + tol.ANGLE_SLACK)
+    assert np.all(new.alpha_hi[e] >= ref.alpha_hi - tol.ANGLE_SLACK)
+    for h_new, h_ref in ((new.h_kl[e], ref.h_kl), (new.h_lk[e], ref.h_lk)):
+        assert np.all(h_new[:, 0] <= h_ref[:, 0] + slack) and np.all(h_new[:, 1] >= h_ref[:, 1] - slack)
+
+
+def _facet_truth(full, contacts, tolerance):
+    """Facet tuples whose every finger pair passes the exact test, found by scanning every
+    stored facet pair (no bins) of a full, span-free facet table."""
+    table, cond = full.facet_table(), pair_conditions(contacts)
+    sigma_h = tolerance.direction(cond.distance)
+    S = {}
+    for e, pair in enumerate(cond.pairs):
+        idx = table.brute_force(cond.distance[e], cond.angle[e], tolerance.distance, tolerance.angle)
+        first, second = table.ordered_pairs(idx, (cond.h_ij[e], cond.h_ji[e], sigma_h[e]))
+        S[pair] = PairSet(first, second, full.num_facets)
+    return join_tuples(S, contacts.n)
+
+
+def test_compression_and_span_bounds_never_drop_a_true_tuple():
+    """Issue 10: on a mesh small enough for a full facet table, the span-bounded patch-first
+    table admits (as patch tuples) every facet tuple that passes the exact pairwise tests,
+    for random grasps within tolerance and within the span."""
+    mesh = objects.load("banana512")
+    full = ObjectModel.from_mesh(mesh, facet_pairs=True, patch_tol_deg=None)
+    span = 0.6 * full.diameter
+    model = ObjectModel.from_mesh(mesh, facet_pairs=False, max_span=span)
+    assert model.table is None and model.patch_table is not None
+    tolerance = Tolerance.from_noise(POSITION_NOISE, NORMAL_NOISE_DEG)
+    labels, rng = model.patches.labels, np.random.default_rng(10)
+    checked = compressed = 0
+    while checked < 30:
+        g = simulate.grasp(full, rng, n=4, position_noise=POSITION_NOISE, normal_noise_deg=NORMAL_NOISE_DEG,
+                           noise="bounded", where="area")
+        conditions = pair_conditions(g.contacts)
+        if np.any(conditions.distance + tolerance.distance > span):
+            continue
+        truth = _facet_truth(full, g.contacts, tolerance)
+        assert any(np.array_equal(t, g.facets) for t in truth)
+        S = admissible_pairs(model, conditions, tolerance, "exact", direction=True, patches=True)
+        found = set(map(tuple, join_tuples(S, g.contacts.n).tolist()))
+        assert set(map(tuple, labels[truth].tolist())) <= found
+        compressed += len(found) < len(truth)
+        checked += 1
+    assert compressed > 0  # the patches did merge tuples in some grasps
+
+
+def test_bench_grasps_on_a_span_model_lie_within_the_span():
+    """contactpose bench draws grasps within a span-bounded model's span, so none is refused."""
+    from contactpose import bench
+    from contactpose.localize import contact_spread
+
+    mesh = objects.load("carton")
+    span = 0.6 * ObjectModel.from_mesh(mesh).diameter
+    model = ObjectModel.from_mesh(mesh, max_span=span)
+    grasps = bench.grasps_for(model, "carton", 10, np.random.default_rng(4))
+    assert len(grasps) == 10 and all(contact_spread(g.contacts) < span for g in grasps)
+    rows = bench.time_method(model, grasps, "fast", cap=60.0)
+    assert all(r["true_found"] for r in rows)

@@ -254,11 +254,6 @@ def test_save_load_round_trip_is_bit_identical(m, seed):
 
 # ------------------------------------------------------------- known failures
 
-@pytest.mark.xfail(strict=True, reason="library: the pose picked for an underdetermined hypothesis (a free rotation "
-                   "or translation) depends on the world frame, and with it the lateral residual and the chi2 that "
-                   "ranks it: box, 2 contacts (seed 37), a rigid motion changes the best chi2 from 5.88 to 325, so the "
-                   "ranking of underdetermined hypotheses is not origin-invariant; pick the free components "
-                   "frame-independently (e.g. minimise the lateral residual along them)")
 def test_underdetermined_chi2_is_frame_invariant():
     m = model("box")
     rng = np.random.default_rng(37)

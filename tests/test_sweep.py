@@ -137,3 +137,39 @@ def test_local_cluster_one_and_two_workers_identical(tmp_path):
     again = sweep.run(make(), tmp_path / "two", workers=2)
     assert again.ran == 0 and again.skipped == 6
     assert again.results.read_bytes() == one.results.read_bytes()
+
+
+def test_script_main_runs_plots_summarizes_and_redraws_from_csv(tmp_path, monkeypatch, capsys):
+    """sweep.main is a whole experiment script: config by name, sweep, figures, summary."""
+    configs = tmp_path / "experiments" / "configs"
+    configs.mkdir(parents=True)
+    (configs / "toy.json").write_text(json.dumps({"common": {"scale": 2.0}, "quick": {"seeds": 2}, "full": {"seeds": 5}}))
+    monkeypatch.setattr(sweep, "ROOT", tmp_path)
+    made, plotted = [], []
+
+    def make_sweep(cfg):
+        made.append(cfg)
+        return Sweep("toy", functools.partial(draw_task, scale=cfg["scale"]), {"a": [1, 2]}, seeds=cfg["seeds"],
+                     config=cfg)
+
+    def summary(out):
+        return f"{len(sweep.read_rows(out / sweep.RESULTS_CSV))} rows"
+
+    argv = ["--quick", "--workers", "0", "--out", str(tmp_path / "res")]
+    out = tmp_path / "res" / "toy"
+    assert sweep.main("toy", "Toy sweep.\n\nMore.", make_sweep, plotted.append, summary, argv) == 0
+    assert made == [{"scale": 2.0, "seeds": 2}] and plotted == [out]
+    assert capsys.readouterr().out.splitlines() == ["8 rows", f"written: {out}"]   # 2 a x 2 seeds x 2 rows
+    fresh = sweep.run(make_sweep(made[0]), tmp_path / "ref", workers=0)
+    assert (out / sweep.RESULTS_CSV).read_bytes() == fresh.results.read_bytes()
+    # --plot-only: no sweep is made or run; figures and summary come from the CSV
+    made.clear()
+    assert sweep.main("toy", "Toy sweep.", make_sweep, plotted.append, summary, argv + ["--plot-only"]) == 0
+    assert made == [] and plotted == [out, out] and capsys.readouterr().out.startswith("8 rows\n")
+
+
+def test_write_rows_unions_columns_and_reads_back(tmp_path):
+    path = tmp_path / "t.csv"
+    sweep.write_rows(path, [{"a": 1, "b": 0.5}, {"c": "x", "a": 2}])
+    assert path.read_text().splitlines()[0] == "a,b,c"
+    assert sweep.read_rows(path) == [{"a": "1", "b": "0.5", "c": ""}, {"a": "2", "b": "", "c": "x"}]

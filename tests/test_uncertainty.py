@@ -191,9 +191,8 @@ def test_short_chain_warns():
 def test_hpd_and_mahalanobis_helpers():
     mean, cov, log_prob = _gaussian()
     run = unc.run_ensemble(log_prob, cov, 2000, np.random.default_rng(3), progress=False)
-    s = unc.PoseSamples(unc.se3_exp(run.xi), run.xi, run.log_prob, np.eye(4), np.zeros(4, int),
-                        run.xi.mean(0), np.cov(run.xi, rowvar=False), {}, run.tau, run.acceptance,
-                        run.steps, run.burn, run.thin, run.n_walkers, run.converged, run.seconds)
+    s = unc.PoseSamples(**vars(run), poses=unc.se3_exp(run.xi), T_opt=np.eye(4), facets=np.zeros(4, int),
+                        mean=run.xi.mean(0), covariance=np.cov(run.xi, rowvar=False), intervals={})
     # a point at the mode has credibility ~0, one far out ~1; HPD and Mahalanobis agree for a Gaussian
     cred = s.hpd_credibility(log_prob(np.stack([mean, mean + 10 * np.sqrt(np.diag(cov))])))
     assert cred[0] < 0.01 and cred[1] == 1.0

@@ -17,7 +17,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass, fields
 
+import numba
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 
 @dataclass
@@ -67,30 +69,73 @@ def fit_poses(obj_normals, obj_offsets, points, finger_normals, *, cost="invaria
     points, finger_normals : (n, 3) measurements; cost : "invariant" | "paper";
     angle_tol : radians, normals closer than this to a common plane (or line) leave
     a direction free; t0 : (H, 3) reference translation (default: the one that puts
-    the facet centroids' mean on the contacts' mean; centroids : (H, n, 3) needed then).
+    the facet centroids' mean on the contacts' mean); centroids : (H, n, 3), needed
+    without t0, and used to fix a free rotation (see :func:`free_angles`).
     """
     if cost not in ("invariant", "paper"):
         raise ValueError(f"cost must be 'invariant' or 'paper', got {cost!r}")
+    obj_normals = _c(obj_normals)
     n = obj_normals.shape[1]
     min_eig = n * np.sin(angle_tol) ** 2
     R = wahba(obj_normals, -finger_normals)
-    if t0 is None:
-        t0 = points.mean(axis=0)[None] - np.einsum("hij,hj->hi", R, centroids.mean(axis=1))
     # Σ n nᵀ in the object frame: its eigenvectors are the (un)determined directions
     lam, V = np.linalg.eigh(np.einsum("hni,hnj->hij", obj_normals, obj_normals))
-    world = np.einsum("hij,hjk->hik", R, V)  # columns: world eigenvectors
-    if cost == "invariant":
-        # rows (R n_k)ᵀ: AᵀA = R (Σ n nᵀ) Rᵀ shares the eigenvalues, eigenvectors R V
-        A = np.einsum("hij,hnj->hni", R, obj_normals)
-        b = np.einsum("hni,ni->hn", A, points) + obj_offsets
-        t = _solve_along(A, b, t0, lam, world, min_eig)
-    else:
-        A = np.broadcast_to(finger_normals, obj_normals.shape)
-        b = np.einsum("ni,ni->n", finger_normals, points)[None] - obj_offsets
-        lam_p, V_p = np.linalg.eigh(finger_normals.T @ finger_normals)
-        t = _solve_along(A, b, t0, np.broadcast_to(lam_p, lam.shape), np.broadcast_to(V_p, world.shape), min_eig)
+    free_rotation = lam[:, 1] <= min_eig
+    if centroids is not None and free_rotation.any():
+        axis = V[free_rotation, :, 2]
+        turn = free_angles(axis, R[free_rotation], centroids[free_rotation], points)
+        axis = np.einsum("fij,fj->fi", R[free_rotation], axis)
+        R[free_rotation] = Rotation.from_rotvec(axis * turn[:, None]).as_matrix() @ R[free_rotation]
+    world = R @ V  # columns: world eigenvectors
+    if t0 is None:
+        t0 = points.mean(axis=0)[None] - np.einsum("hij,hj->hi", R, centroids.mean(axis=1))
+    t = np.empty((len(R), 3))
+    _translations(R, world, lam, obj_normals, _c(obj_offsets),
+                  _c(points), _c(finger_normals), _c(np.broadcast_to(t0, t.shape)),
+                  cost == "paper", min_eig, t)
     rows = world.transpose(0, 2, 1)
-    return PoseFit(R, t, rows, lam <= min_eig, rows[:, 2], lam[:, 1] <= min_eig)
+    return PoseFit(R, t, rows, lam <= min_eig, rows[:, 2], free_rotation)
+
+
+def _c(a):
+    return np.ascontiguousarray(a, dtype=np.float64)
+
+
+def free_angles(axis_obj, R, centroids, points):
+    """Angle to turn R about the free axis R·axis_obj, picked from the geometry, not the frame.
+
+    When the normals fix only one axis, Wahba's rotation about it is arbitrary and depends
+    on the world frame. θ minimises Σ_i |Rot(axis, θ) R (c_i - c̄) - (x̃_i - x̄)|²: it turns
+    the facet centroids' spread onto the contacts'. Where the centroids lie on the axis
+    (the centres of two opposite faces, say), a fixed object direction off the axis is
+    turned onto the first contact that lies off it instead, so the choice stays the same
+    under any rigid motion of the contacts.
+    axis_obj : (F, 3) object-frame unit axes, R : (F, 3, 3), centroids : (F, n, 3),
+    points : (n, 3)  ->  (F,) radians
+    """
+    axis = np.einsum("fij,fj->fi", R, axis_obj)
+    u = np.einsum("fij,fnj->fni", R, centroids - centroids.mean(axis=1, keepdims=True))
+    v = np.broadcast_to(points - points.mean(axis=0), u.shape)
+    theta, fixed = _turn(axis, u, v)
+    if not fixed.all():
+        loose = ~fixed
+        ref = np.eye(3)[np.argmin(np.abs(axis_obj[loose]), axis=1)]  # least aligned object axis
+        ref -= np.einsum("fi,fi->f", ref, axis_obj[loose])[:, None] * axis_obj[loose]
+        off = v[loose] - np.einsum("fni,fi->fn", v[loose], axis[loose])[..., None] * axis[loose][:, None]
+        size = np.linalg.norm(off, axis=2)
+        first = np.argmax(size > 1e-6 * size.max(axis=1, keepdims=True), axis=1)
+        theta[loose] = _turn(axis[loose], np.einsum("fij,fj->fi", R[loose], ref)[:, None],
+                             off[np.arange(len(first)), first][:, None])[0]
+    return theta
+
+
+def _turn(axis, u, v):
+    """θ maximising Σ_i v_i·Rot(axis, θ) u_i: atan2(Σ axis·(u_i × v_i), Σ u_i⊥·v_i).
+    axis : (F, 3), u, v : (F, k, 3) -> (θ (F,), whether u and v fix it (F,) bool; θ = 0 if not)."""
+    sin = np.einsum("fi,fni->f", axis, np.cross(u, v))
+    cos = np.einsum("fni,fni->f", u, v) - np.einsum("fni,fi,fnj,fj->f", u, axis, v, axis)
+    fixed = np.hypot(sin, cos) > 1e-9 * np.linalg.norm(u, axis=2).sum(axis=1) * np.linalg.norm(v, axis=2).sum(axis=1)
+    return np.where(fixed, np.arctan2(sin, cos), 0.0), fixed
 
 
 def wahba(obj_vectors, world_vectors):
@@ -105,10 +150,24 @@ def wahba(obj_vectors, world_vectors):
     return U @ Vt
 
 
-def _solve_along(A, b, t0, lam, V, min_eig):
-    """argmin_t |A t - b|² with AᵀA = V diag(lam) Vᵀ, moving from t0 only along
-    eigenvectors whose eigenvalue exceeds min_eig. A : (H, n, 3), b : (H, n) -> (H, 3)"""
-    residual = np.einsum("hni,hn->hi", A, b - np.einsum("hni,hi->hn", A, t0))
-    coef = np.einsum("hji,hj->hi", V, residual)
-    coef = np.where(lam > min_eig, coef / np.where(lam > min_eig, lam, 1.0), 0.0)
-    return t0 + np.einsum("hij,hj->hi", V, coef)
+@numba.njit(cache=True)
+def _translations(R, world, lam, normals, offsets, points, finger_normals, t0, paper, min_eig, t):
+    """argmin_t |A t - b|², moving from t0 only along eigenvectors of AᵀA whose eigenvalue
+    exceeds min_eig. Invariant cost: rows (R n_k)ᵀ t = (R n_k)ᵀ x̃_i + d_k (AᵀA = R ΣnnᵀRᵀ,
+    eigenvectors ``world``); paper: ñ_iᵀ t = ñ_iᵀ x̃_i - d_k."""
+    lam_p, V_p = np.linalg.eigh(finger_normals.T @ finger_normals)
+    for h in range(R.shape[0]):
+        if paper:
+            A, b = finger_normals, np.sum(finger_normals * points, axis=1) - offsets[h]
+            E, w = V_p, lam_p
+        else:
+            A = np.ascontiguousarray(normals[h] @ R[h].T)  # rows (R n_k)ᵀ
+            b = np.sum(A * points, axis=1) + offsets[h]
+            E, w = world[h], lam[h]
+        resid = A.T @ (b - A @ t0[h])
+        t[h] = t0[h]
+        for j in range(3):
+            if w[j] > min_eig:
+                coef = (E[0, j] * resid[0] + E[1, j] * resid[1] + E[2, j] * resid[2]) / w[j]
+                for r in range(3):
+                    t[h, r] += E[r, j] * coef

@@ -51,7 +51,8 @@ LM runs twice: a screening pass (:data:`SCREEN`, loose stopping) over all k, the
 Hypothesis scores:
 
 * ``chi2 = 2 · graph.error(T*)``: the whitened χ² of the contacts (robust: Σ 2ρ(s_i)) plus
-  the prior's squared Mahalanobis distance;
+  the prior's squared Mahalanobis distance, plus :func:`outlier_penalty` per unassigned
+  finger (facet -1, from ``localize(..., max_outliers=...)``: its rows in the factor are 0);
 * ``covariance``: ``gtsam.Marginals`` at T*, 6×6, rotation first, in the tangent space
   at T* (right perturbation);
 * ``log_evidence``: Laplace approximation of log ∫ p(z | T, h) p(T) dT,
@@ -85,7 +86,7 @@ from scipy.spatial.transform import Rotation
 
 from contactpose import residuals as res
 from contactpose.errors import ContactPoseError
-from contactpose.geometry import closest_point_triangle
+from contactpose.geometry import closest_point_triangle, point_triangle_distance
 from contactpose.solvers.closed_form import wahba
 
 log = logging.getLogger(__name__)
@@ -107,6 +108,10 @@ PRIOR_GATE_CHI2 = 44.841275388361254
 #: After LM, contacts that lie nearer another member of their patch move to it and LM runs
 #: again, at most this many times per hypothesis (see :func:`nearest_facets`).
 REASSIGN_ROUNDS = 2
+#: With a prior, when no hypothesis agrees with it and fits the contacts within noise,
+#: ``localize`` searches again with the pair tolerances widened by this factor (3σ gates
+#: become 6σ; research/factor_graph.md, "Rescue").
+RESCUE_WIDEN = 2.0
 #: The one variable of every graph.
 POSE_KEY = 0
 _KERNEL_CODE = {"none": 0, "huber": 1, "cauchy": 2}
@@ -132,9 +137,10 @@ def _robust_scale(s, kernel, k):
 def _contact_rows(M, data, params, e, J):
     """Whitened (robust) contact residuals and their Jacobian w.r.t. the Pose3.
 
-    M : (4, 4) pose; data : (n, 19) packed contacts; params : from :func:`kernel_params`;
+    M : (4, 4) pose; data : (n, 20) packed contacts; params : from :func:`kernel_params`;
     e : (m,) out; J : (m, 6) out, written unless it has 0 rows. Rows: 3n normal
-    (contact-major), n offset, then n lateral when point-to-facet is on.
+    (contact-major), n offset, then n lateral when point-to-facet is on. The rows of an
+    unassigned contact (data[i, 19] == 0) are 0.
     """
     n = data.shape[0]
     inv_sn, inv_sx, k, tiny = params[0], params[1], params[2], params[3]
@@ -144,6 +150,9 @@ def _contact_rows(M, data, params, e, J):
     R = M[:3, :3]
     t = M[:3, 3]
     for i in range(n):
+        if data[i, 19] == 0.0:  # unassigned finger: no residual
+            _zero_rows(e, J, (3 * i, 3 * i + 1, 3 * i + 2, 3 * n + i, 4 * n + i), lateral, want_j)
+            continue
         nk = data[i, 0:3]
         x = data[i, 13:16]
         f = data[i, 16:19]
@@ -225,18 +234,31 @@ def _contact_rows(M, data, params, e, J):
             e[rows[a]] *= fs
 
 
-def pack_contacts(model, contacts, facets):
-    """Per-contact factor data: normal (3), offset, triangle (9), point (3), finger normal (3).
+@njit(cache=True)
+def _zero_rows(e, J, rows, lateral, want_j):
+    """Zero the residual rows (and Jacobian rows) of one contact; the lateral row only if present."""
+    for a in range(5 if lateral else 4):
+        e[rows[a]] = 0.0
+        if want_j:
+            for c6 in range(6):
+                J[rows[a], c6] = 0.0
 
-    model : ObjectModel; contacts : Contacts; facets : (..., n) int  ->  (..., n, 19) float64
+
+def pack_contacts(model, contacts, facets):
+    """Per-contact factor data: normal (3), offset, triangle (9), point (3), finger normal (3),
+    assigned (1.0, or 0.0 for facet -1: an unassigned finger, whose rows are 0).
+
+    model : ObjectModel; contacts : Contacts; facets : (..., n) int  ->  (..., n, 20) float64
     """
     facets = np.asarray(facets)
     lead = facets.shape[:-1]
+    safe = np.maximum(facets, 0)
     return np.concatenate([
-        model.planes.normals[facets], model.planes.offsets[facets][..., None],
-        model.triangles[facets].reshape(facets.shape + (9,)),
+        model.planes.normals[safe], model.planes.offsets[safe][..., None],
+        model.triangles[safe].reshape(facets.shape + (9,)),
         np.broadcast_to(contacts.points, lead + contacts.points.shape),
         np.broadcast_to(contacts.finger_normals, lead + contacts.points.shape),
+        (facets >= 0)[..., None].astype(np.float64),
     ], axis=-1)
 
 
@@ -259,7 +281,7 @@ def factor_dim(n, point_to_facet):
 def contact_residuals(T, data, params, jacobian=True):
     """The batched factor's error and Jacobian at a pose, outside GTSAM.
 
-    T : (4, 4); data : (n, 19) from :func:`pack_contacts`; params : from :func:`kernel_params`.
+    T : (4, 4); data : (n, 20) from :func:`pack_contacts`; params : from :func:`kernel_params`.
     Returns e (m,) and J (m, 6) (None when not ``jacobian``), m = :func:`factor_dim`.
     """
     m = factor_dim(len(data), params[4] != 0.0)
@@ -272,7 +294,7 @@ def contact_residuals(T, data, params, jacobian=True):
 def contact_error(data, params, e, J, key, this, values, H):
     """CustomFactor error function; bind everything before ``this`` with functools.partial.
 
-    data : (n, 19); params : (6,); e : (m,) and J : (m, 6) work buffers (GTSAM copies what
+    data : (n, 20); params : (6,); e : (m,) and J : (m, 6) work buffers (GTSAM copies what
     it is given, so they can be reused); key : the Pose3 key.
     """
     if H is None:
@@ -289,7 +311,7 @@ _NO_JACOBIAN = np.empty((0, 6))
 def contact_factor(data, params, key=POSE_KEY):
     """The batched contact factor of one hypothesis: a gtsam.CustomFactor on ``key``.
 
-    data : (n, 19) from :func:`pack_contacts`; params : from :func:`kernel_params`.
+    data : (n, 20) from :func:`pack_contacts`; params : from :func:`kernel_params`.
     """
     m = factor_dim(len(data), params[4] != 0.0)
     fn = partial(contact_error, data, params, np.empty(m), np.empty((m, 6)), key)
@@ -405,12 +427,14 @@ class Refinement:
     the refined pose (with patches in the model, each contact's nearest member of its patch;
     rows that end on the same facets are merged, so K can be less than asked for);
     poses : (K, 4, 4) refined T_world_object; start : (K, 4, 4) LM initial values;
-    chi2 : (K,) 2·graph.error at the optimum (robust contact cost + prior term);
-    contact_chi2 : (K,) plain whitened χ² of the contacts (no kernel, no prior);
+    chi2 : (K,) 2·graph.error at the optimum (robust contact cost + prior term) plus
+    :func:`outlier_penalty` for unassigned fingers;
+    contact_chi2 : (K,) plain whitened χ² of the assigned contacts (no kernel, no prior);
     covariance : (K, 6, 6) marginal covariance (rotation first), NaN when undetermined;
     log_evidence : (K,) Laplace log-evidence (NaN when undetermined); probability : (K,);
     iterations : (K,) LM iterations; determined : (K,) bool; seconds, cpu_seconds : (K,) wall
-    and thread CPU time of each refinement (graph update, LM, marginals).
+    and thread CPU time of each refinement (graph update, LM, marginals); agreeing : input rows
+    that passed :func:`prior_gate` (-1 without a prior; 0 means all were refined regardless).
     """
 
     index: np.ndarray
@@ -428,6 +452,7 @@ class Refinement:
     cpu_seconds: np.ndarray
     robust: str = "huber"
     has_prior: bool = False
+    agreeing: int = -1
 
     def __len__(self):
         return len(self.index)
@@ -458,8 +483,8 @@ def refine_hypotheses(model, contacts, arrays, tolerance, *, prior=None, robust=
     """Refine the best k hypotheses in a GTSAM factor graph and score them.
 
     model : ObjectModel; contacts : Contacts; arrays : HypothesisArrays ranked by the closed
-    form (rows with n facets each); tolerance : Tolerance (σ_x = position_noise, σ_n =
-    normal_noise); prior : PosePrior or None; robust : "huber" | "cauchy" | "none"; k : how
+    form (rows with n facets each, -1 for an unassigned finger); tolerance : Tolerance (σ_x =
+    position_noise, σ_n = normal_noise); prior : PosePrior or None; robust : "huber" | "cauchy" | "none"; k : how
     many to refine (0: all); point_to_facet : add the lateral residual; params : optional
     gtsam.LevenbergMarquardtParams for a single pass (default: a :data:`SCREEN` pass over all
     k, then a :func:`lm_params` polish of those with probability >= POLISH_PROBABILITY).
@@ -474,7 +499,7 @@ def refine_hypotheses(model, contacts, arrays, tolerance, *, prior=None, robust=
     facets_all = np.asarray(arrays.facets)
     if len(facets_all) == 0:
         return _empty(contacts.n, robust, prior)
-    idx, starts, facets = _select(model, contacts, arrays, tolerance, prior, k, point_to_facet)
+    idx, starts, facets, agreeing = _select(model, contacts, arrays, tolerance, prior, k, point_to_facet)
     screen, polish = (params, None) if params is not None else (lm_params(**SCREEN), lm_params())
     # One graph for all hypotheses: the contact factor reads its data from ``buffer``,
     # which is overwritten per hypothesis (all have the same n, so the same factor shape).
@@ -486,6 +511,7 @@ def refine_hypotheses(model, contacts, arrays, tolerance, *, prior=None, robust=
         graph.add(prior_factor(prior))
     prior_cov = None if prior is None else prior.covariance_matrix()
     K = len(idx)
+    penalty = outlier_penalty(facets)
     poses, chi2, cov = starts.copy(), np.zeros(K), np.zeros((K, 6, 6))
     iters, secs, cpu_secs = np.zeros(K, int), np.zeros(K), np.zeros(K)
 
@@ -493,6 +519,7 @@ def refine_hypotheses(model, contacts, arrays, tolerance, *, prior=None, robust=
         for j in rows:
             for _ in range(1 + REASSIGN_ROUNDS):
                 poses[j], chi2[j], cov[j], it, sec, cpu = _timed(graph, buffer, packed[j], poses[j], lm)
+                chi2[j] += penalty[j]
                 iters[j] += it
                 secs[j] += sec
                 cpu_secs[j] += cpu
@@ -515,7 +542,7 @@ def refine_hypotheses(model, contacts, arrays, tolerance, *, prior=None, robust=
     determined = np.isfinite(cov[order]).all(axis=(1, 2))
     return Refinement(idx[order], facets[order], poses[order], starts[order], chi2[order], contact_chi2,
                       cov[order], log_ev[order], prob, iters[order], determined, secs[order],
-                      cpu_secs[order], robust, prior is not None)
+                      cpu_secs[order], robust, prior is not None, agreeing)
 
 
 def nearest_facets(model, contacts, facets, poses):
@@ -524,15 +551,16 @@ def nearest_facets(model, contacts, facets, poses):
     With patches (connected, nearly coplanar facets searched as one unit) a hypothesis's
     facet within a patch depends on the pose, and the lateral residual of the wrong member
     would hold the contact to it. Without patches in the model, ``facets`` unchanged.
-    facets : (H, n) int, poses : (H, 4, 4)  ->  (H, n) int
+    facets : (H, n) int (-1: unassigned, kept), poses : (H, 4, 4)  ->  (H, n) int
     """
     patches = getattr(model, "patches", None)
-    if patches is None or not np.any(np.diff(patches.indptr)[patches.labels[facets]] > 1):
+    labels = None if patches is None else patches.labels[np.maximum(facets, 0)]
+    if patches is None or not np.any(np.diff(patches.indptr)[labels] > 1):
         return facets  # no patches, or every contact's patch is a single facet
     from contactpose.patches import nearest_members
 
     p_obj = res.to_object_frame(poses[:, :3, :3], poses[:, :3, 3], contacts.points)
-    return nearest_members(patches, model.triangles, patches.labels[facets], p_obj)
+    return np.where(facets >= 0, nearest_members(patches, model.triangles, labels, p_obj), -1)
 
 
 def _log_evidence(chi2, cov, prior_cov):
@@ -564,25 +592,29 @@ def _optimize(graph, T0, params):
 
 
 def _select(model, contacts, arrays, tolerance, prior, k, point_to_facet):
-    """Rows to refine, their LM start poses and facets: (K,) int, (K, 4, 4), (K, n) int."""
+    """Rows to refine, their LM start poses and facets: (K,) int, (K, 4, 4), (K, n) int, and
+    how many rows passed the prior gate (-1 without a prior)."""
     h = len(arrays.facets)
     if prior is None:
         idx = np.arange(h if k == 0 else min(k, h))
         T = np.asarray(arrays.poses)[idx]
-        return idx, T, nearest_facets(model, contacts, np.asarray(arrays.facets)[idx], T)
+        return idx, T, nearest_facets(model, contacts, np.asarray(arrays.facets)[idx], T), -1
     rows = np.flatnonzero(prior_gate(model, arrays, tolerance, prior))
+    agreeing = len(rows)
     if len(rows) == 0:  # the prior contradicts every hypothesis: rank them all anyway
         log.warning("vision prior inconsistent with all %d hypotheses' rotations", h)
         rows = np.arange(h)
     facets = np.asarray(arrays.facets)[rows]
-    R, t = prior_closed_form(model.planes.normals[facets], model.planes.offsets[facets], contacts.points,
-                             contacts.finger_normals, tolerance, prior)
+    ok, safe = facets >= 0, np.maximum(facets, 0)  # an unassigned finger enters with weight 0
+    R, t = prior_closed_form(model.planes.normals[safe] * ok[..., None], model.planes.offsets[safe] * ok,
+                             contacts.points, contacts.finger_normals, tolerance, prior)
     T = np.zeros((len(rows), 4, 4))
     T[:, :3, :3], T[:, :3, 3], T[:, 3, 3] = R, t, 1.0
     facets = nearest_facets(model, contacts, facets, T)
-    score = _contact_chi2(model, contacts, facets, T, tolerance, point_to_facet) + prior_mahalanobis2(R, t, prior)
+    score = (_contact_chi2(model, contacts, facets, T, tolerance, point_to_facet) + outlier_penalty(facets)
+             + prior_mahalanobis2(R, t, prior))
     best = np.argsort(score, kind="stable")[:len(rows) if k == 0 else k]
-    return rows[best], T[best], facets[best]
+    return rows[best], T[best], facets[best], agreeing
 
 
 def prior_gate(model, arrays, tolerance, prior):
@@ -596,8 +628,9 @@ def prior_gate(model, arrays, tolerance, prior):
     (singular info) are never dropped.
     """
     facets = np.asarray(arrays.facets)
-    normals = model.planes.normals[facets]
-    n = facets.shape[1]
+    ok = facets >= 0  # unassigned fingers carry no information
+    normals = model.planes.normals[np.maximum(facets, 0)] * ok[..., None]
+    n = ok.sum(axis=1)[:, None, None]
     info = (n * np.eye(3) - np.einsum("hni,hnj->hij", normals, normals)) / tolerance.normal_noise**2
     Rp = prior.pose[:3, :3]
     delta = Rotation.from_matrix(np.einsum("ji,hjk->hik", Rp, arrays.fit.R)).as_rotvec()
@@ -606,23 +639,73 @@ def prior_gate(model, arrays, tolerance, prior):
     return np.einsum("hi,hij,hj->h", delta, info, y) <= PRIOR_GATE_CHI2
 
 
+def _residuals(model, contacts, facets, poses, point_to_facet):
+    """residuals.py's r_n (H, n, 3), r_o (H, n), r_l (H, n) (0 without point_to_facet), each
+    0 for an unassigned finger, and ok (H, n) bool: assigned. facets : (H, n) int, -1 unassigned."""
+    ok, safe = facets >= 0, np.maximum(facets, 0)
+    r_n, r_o, r_l = res.contact_residuals(poses[:, :3, :3], poses[:, :3, 3], model.planes.normals[safe],
+                                          model.planes.offsets[safe], model.triangles[safe], contacts.points,
+                                          contacts.finger_normals)
+    return r_n * ok[..., None], r_o * ok, r_l * (ok & point_to_facet), ok
+
+
+def agrees_with_prior(model, arrays, tolerance, prior):
+    """Whether some hypothesis of ``arrays`` passes :func:`prior_gate` (False when there are none)."""
+    return len(arrays.cost) > 0 and bool(prior_gate(model, arrays, tolerance, prior).any())
+
+
 def _contact_chi2(model, contacts, facets, poses, tolerance, point_to_facet):
-    """Whitened χ² of residuals.py (lateral term only with point_to_facet). -> (H,)"""
-    R, t = poses[:, :3, :3], poses[:, :3, 3]
-    normals = model.planes.normals[facets]
-    r_n = res.normal_residuals(R, normals, contacts.finger_normals)
-    p_obj = res.to_object_frame(R, t, contacts.points)
-    r_o = res.offset_residuals(p_obj, normals, model.planes.offsets[facets])
-    r_l = (res.lateral_residuals(p_obj, model.triangles[facets], r_o) if point_to_facet
-           else np.zeros_like(r_o))
+    """Whitened χ² of residuals.py over the assigned contacts. -> (H,)"""
+    r_n, r_o, r_l, _ = _residuals(model, contacts, facets, poses, point_to_facet)
     return res.whitened_cost(r_n, r_o, r_l, tolerance.normal_noise, tolerance.position_noise)
+
+
+def hypothesis_arrays(model, contacts, refinement, fit, tolerance):
+    """A Refinement as localize's HypothesisArrays, in its order (most probable first).
+
+    fit : PoseFit of the refined rows (its free directions are kept; R, t become the refined
+    poses). residuals (K, n, 5) as in ``localize`` (NaN for an unassigned finger); chi2 the
+    plain χ² plus :func:`outlier_penalty`; cost = -log_evidence (+inf when undetermined).
+    """
+    from contactpose.localize import HypothesisArrays
+
+    facets, poses = refinement.facets, refinement.poses
+    r_n, r_o, r_l, ok = _residuals(model, contacts, facets, poses, True)
+    chi2 = res.whitened_cost(r_n, r_o, r_l, tolerance.normal_noise, tolerance.position_noise)
+    residual = np.concatenate([r_n, r_o[..., None], r_l[..., None]], axis=2)
+    residual[~ok] = np.nan
+    fit.R, fit.t = poses[:, :3, :3], poses[:, :3, 3]
+    cost = -np.nan_to_num(refinement.log_evidence, nan=-np.inf)
+    return HypothesisArrays(facets, poses, cost, chi2 + outlier_penalty(facets), residual, fit,
+                            refinement.covariance, refinement.probability)
+
+
+def nearest_fit_facets(model, contacts, pose, tolerance):
+    """Each contact's best facet under a pose: least whitened point-to-triangle distance²
+    plus normal residual². pose : (4, 4) -> (n,) int (valid facets only)"""
+    valid = np.flatnonzero(model.planes.valid)
+    R, t = pose[:3, :3], pose[:3, 3]
+    p = (contacts.points - t) @ R  # object frame, (n, 3)
+    f, n = len(valid), contacts.n
+    dist = point_triangle_distance(np.repeat(p, f, axis=0), np.tile(model.triangles[valid], (n, 1, 1)))
+    r_n = model.planes.normals[valid] @ R.T + contacts.finger_normals[:, None]  # (n, F, 3)
+    cost = dist.reshape(n, f) ** 2 / tolerance.position_noise**2 + np.sum(r_n**2, axis=2) / tolerance.normal_noise**2
+    return valid[np.argmin(cost, axis=1)]
+
+
+def outlier_penalty(facets):
+    """χ² charged for the unassigned fingers (facet -1) of each row: localize's OUTLIER_PENALTY
+    each, so that leaving a finger out never beats assigning it within noise. (H, n) -> (H,)"""
+    from contactpose.localize import OUTLIER_PENALTY
+
+    return OUTLIER_PENALTY * np.sum(np.asarray(facets) < 0, axis=-1)
 
 
 def _empty(n, robust, prior):
     z = np.zeros(0)
     return Refinement(np.zeros(0, int), np.zeros((0, n), int), np.zeros((0, 4, 4)), np.zeros((0, 4, 4)),
                       z, z, np.zeros((0, 6, 6)), z, z, np.zeros(0, int), np.zeros(0, bool), z, z,
-                      robust, prior is not None)
+                      robust, prior is not None, 0 if prior is not None else -1)
 
 
 def _check(model, contacts, arrays, tolerance, prior, robust, k):
@@ -642,8 +725,8 @@ def _check(model, contacts, arrays, tolerance, prior, robust, k):
     facets = np.asarray(arrays.facets)
     if facets.ndim != 2 or (len(facets) and facets.shape[1] != contacts.n):
         raise ContactPoseError(f"arrays.facets must have shape (H, {contacts.n}), got {facets.shape}")
-    if len(facets) and (facets.min() < 0 or facets.max() >= model.num_facets):
-        raise ContactPoseError(f"arrays.facets must index the model's {model.num_facets} facets")
+    if len(facets) and (facets.min() < -1 or facets.max() >= model.num_facets):
+        raise ContactPoseError(f"arrays.facets must index the model's {model.num_facets} facets (-1: unassigned)")
 
 
 # -------------------------------------------------------------- ambiguity ---
