@@ -73,8 +73,10 @@ def lowest_chi2_bound(model, contacts, arrays, rows, tolerance, threshold=None, 
     weights = used / tolerance.normal_noise**2, used / tolerance.position_noise**2
     # the tangent bound needs a convex region: one triangle, and a pose with no free direction
     determined = ~arrays.fit.underdetermined[rows] & (np.diff(indptr)[regions] == 1).all(axis=1)
-    shape = (model.triangles, indptr, members)
-    bound, xi = _bounds(R, t, *planes, contacts, *weights, determined, shape, steps)
+    free = arrays.fit.underdetermined[rows]
+    shape = (model.triangles, model.centroids, _facet_radii(model), indptr, members,
+             np.inf if threshold is None else float(threshold))
+    bound, xi = _bounds(R, t, *planes, contacts, *weights, determined, free, shape, steps)
     for _ in range(RELINEARISE):
         again = (np.ones(len(bound), dtype=bool) if threshold is None else
                  (bound > threshold) & ((bound <= RELINEARISE_BAND * threshold) | ~determined))
@@ -83,7 +85,7 @@ def lowest_chi2_bound(model, contacts, arrays, rows, tolerance, threshold=None, 
         R[again] = R[again] @ Rotation.from_rotvec(xi[again, :3]).as_matrix()
         t[again] += np.einsum("kij,kj->ki", R[again], xi[again, 3:])
         bound[again], xi[again] = _bounds(R[again], t[again], *(a[again] for a in planes), contacts,
-                                          *(w[again] for w in weights), determined[again], shape, steps)
+                                          *(w[again] for w in weights), determined[again], free[again], shape, steps)
     return bound
 
 
@@ -96,18 +98,23 @@ def _regions(model, facets):
     return model.patches.labels[facets], model.patches.indptr, model.patches.members
 
 
-def _bounds(R, t, normals, offsets, regions, contacts, wn, wx, determined, shape, steps):
+def _facet_radii(model):
+    """(m,) distance from each facet's centroid to its farthest vertex."""
+    return np.linalg.norm(model.triangles - model.centroids[:, None], axis=2).max(axis=1)
+
+
+def _bounds(R, t, normals, offsets, regions, contacts, wn, wx, determined, free, shape, steps):
     """The bound about (R, t) and the ξ the alternating minimisation reached: (K,), (K, 6)."""
     bound, xi = np.empty(len(R)), np.empty((len(R), 6))
     _bound_kernel(*(np.ascontiguousarray(a, dtype=np.float64) for a in
                     (R, t, normals, offsets, contacts.points, contacts.finger_normals, wn, wx)),
-                  regions, *shape, determined, steps, bound, xi)
+                  regions, *shape, determined, free, steps, bound, xi)
     return bound, xi
 
 
 @numba.njit(cache=True)
-def _bound_kernel(R, t, normals, offsets, points, finger_normals, wn, wx, regions, triangles, indptr, members,
-                  determined, steps, bound, xi_out):
+def _bound_kernel(R, t, normals, offsets, points, finger_normals, wn, wx, regions, triangles, centres, radii,
+                  indptr, members, threshold, determined, free, steps, bound, xi_out):
     """Per hypothesis: the plane quadratic (A, g, χ²_0), alternating minimisation of the
     linearised χ² from ξ = 0, and the closed-form minimum of the lower bound there. Where
     that bound does not hold (``determined`` false: a free direction, or a patch of several
@@ -135,12 +142,15 @@ def _bound_kernel(R, t, normals, offsets, points, finger_normals, wn, wx, region
         H[:3, :3] += A_n
         g += g_n
         H += 1e-12 * np.trace(H) * np.eye(6)
-        xi = _alternate(p, G, regions[k], triangles, indptr, members, wx[k], np.linalg.inv(H), g_n,
-                        steps if determined[k] else 4 * steps)
+        many = np.any(indptr[regions[k] + 1] - indptr[regions[k]] > 1)
+        reach = _reach(A, g, chi2_0, G, threshold) if many and not free[k] else np.full(n, np.inf)
+        cand, count = _candidates(p, reach, regions[k], centres, radii, indptr, members)
+        xi, last = _alternate(p, G, cand, count, triangles, centres, radii, wx[k], np.linalg.inv(H), g_n,
+                              steps if determined[k] else 4 * steps)
         h, const, reached = np.zeros(6), chi2_0, 0.0
         for i in range(n):
             q = p[i] + G[i] @ xi
-            d = q - _closest_in_region(q, regions[k, i], triangles, indptr, members)
+            d = q - _closest_of(q, cand[i, :count[i]], triangles, centres, radii, last[i])[0]
             u = d - (d @ normals[k, i]) * normals[k, i]      # in-plane: |u| = r_l at q
             h += wx[k, i] * (G[i].T @ u)
             const += wx[k, i] * (u @ u)
@@ -152,30 +162,71 @@ def _bound_kernel(R, t, normals, offsets, points, finger_normals, wn, wx, region
 
 
 @numba.njit(cache=True)
-def _alternate(p, G, regions, triangles, indptr, members, wx, H_inv, g_n, steps):
+def _alternate(p, G, cand, count, triangles, centres, radii, wx, H_inv, g_n, steps):
     """Minimise the linearised χ² over ξ, alternating closest points c_i in the contacts'
-    regions with the ξ that best meets them: H ξ = -(g_n + Σ_i wx G_iᵀ (p_i - c_i))."""
-    xi = np.zeros(6)
+    regions with the ξ that best meets them: H ξ = -(g_n + Σ_i wx G_iᵀ (p_i - c_i)).
+    Returns ξ (6,) and where each contact's closest triangle sits in its candidates."""
+    xi, last = np.zeros(6), np.zeros(len(p), dtype=np.int64)
     for _ in range(steps):
         rhs = g_n.copy()
         for i in range(len(p)):
-            c = _closest_in_region(p[i] + G[i] @ xi, regions[i], triangles, indptr, members)
+            c, last[i] = _closest_of(p[i] + G[i] @ xi, cand[i, :count[i]], triangles, centres, radii, last[i])
             rhs += wx[i] * (G[i].T @ (p[i] - c))
         xi = -(H_inv @ rhs)
-    return xi
+    return xi, last
 
 
 @numba.njit(cache=True)
-def _closest_in_region(q, region, triangles, indptr, members):
-    """Closest point to q on the triangles of one region (a facet, or a patch's members)."""
-    best, out = np.inf, q
-    for e in range(indptr[region], indptr[region + 1]):
-        tri = triangles[members[e]]
+def _reach(A, g, chi2_0, G, threshold):
+    """How far each contact can move, to first order, among the poses whose plane χ² is
+    within ``threshold``: |G_i ξ*| + sqrt(b · trace(G_i A⁻¹ G_iᵀ)), b = threshold - χ²_min."""
+    A_inv = np.linalg.pinv(A)
+    step = -(A_inv @ g)
+    budget = max(threshold - (chi2_0 + g @ step), 0.0)
+    reach = np.empty(len(G))
+    for i in range(len(G)):
+        reach[i] = np.sqrt(np.sum((G[i] @ step) ** 2)) + np.sqrt(budget * np.trace(G[i] @ A_inv @ G[i].T))
+    return reach
+
+
+@numba.njit(cache=True)
+def _candidates(p, reach, regions, centres, radii, indptr, members):
+    """Per contact, the facets of its region that a pose within noise can bring it to: those
+    whose bounding sphere lies within (distance to the region) + reach of it. -> (n, s), (n,)"""
+    size = 1
+    for i in range(len(p)):
+        size = max(size, indptr[regions[i] + 1] - indptr[regions[i]])
+    cand, count = np.empty((len(p), size), dtype=np.int64), np.zeros(len(p), dtype=np.int64)
+    for i in range(len(p)):
+        lo, hi = indptr[regions[i]], indptr[regions[i] + 1]
+        near = np.inf  # an upper bound on the distance from p_i to the region
+        for e in range(lo, hi):
+            near = min(near, np.sqrt(np.sum((p[i] - centres[members[e]]) ** 2)) + radii[members[e]])
+        for e in range(lo, hi):
+            f = members[e]
+            if np.sqrt(np.sum((p[i] - centres[f]) ** 2)) - radii[f] <= near + reach[i]:
+                cand[i, count[i]] = f
+                count[i] += 1
+    return cand, count
+
+
+@numba.njit(cache=True)
+def _closest_of(q, facets, triangles, centres, radii, start):
+    """Closest point to q on the given triangles, and its position in ``facets``. facets[start]
+    (the last answer) goes first, so the bounding spheres of most others rule them out."""
+    best, out, at = np.inf, q, start
+    for j in range(len(facets)):
+        e = (start + j) % len(facets)
+        f = facets[e]
+        gap = np.sqrt(np.sum((q - centres[f]) ** 2)) - radii[f]
+        if gap > 0.0 and gap * gap >= best:
+            continue
+        tri = triangles[f]
         c = closest_point_triangle(q, tri[0], tri[1], tri[2])
         d = (q - c) @ (q - c)
         if d < best:
-            best, out = d, c
-    return out
+            best, out, at = d, c, e
+    return out, at
 
 
 @numba.njit(cache=True)

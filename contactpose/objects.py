@@ -21,6 +21,8 @@ rock1k        980  0.150 x 0.126 x 0.095        yes
 box            48  0.10 x 0.06 x 0.04           yes
 cylinder       96  0.06 x 0.06 x 0.08           yes
 sphere        320  0.10 x 0.10 x 0.10           yes
+twin_rock     320  0.120 x 0.095 x 0.081        yes
+tri_rock      320  0.114 x 0.120 x 0.080        yes
 =========  ======  ===========================  ======
 """
 
@@ -397,22 +399,60 @@ def load(name: str) -> trimesh.Trimesh:
     return _OBJECTS[name]()
 
 
+def _symmetric_rock(directions, faces, turn, folds: int, shape) -> trimesh.Trimesh:
+    """Irregular stone, 0.12 m across, that the rotation ``turn`` maps onto itself.
+
+    directions : (V, 3) unit-sphere vertices, permuted by ``turn`` : (3, 3) of order ``folds``;
+    shape : (V,) positive base radius, invariant under ``turn``. The smooth radial perturbation
+    (seed 2003) is summed over the powers of ``turn``:
+    r(d) = shape(d) · (1 + 0.3 / folds · Σ_m f(turn^m d)), so ``turn`` maps the surface onto itself.
+    """
+    field, turned = 0.0, directions
+    for _ in range(folds):
+        field = field + _radial_noise(turned, np.random.default_rng(2003), n_waves=6, max_freq=3.0)
+        turned = turned @ turn.T
+    radius = (1.0 + 0.3 / folds * field) * shape
+    return _star_shaped(directions, faces, radius, 0.12)
+
+
 def make_twin_rock() -> trimesh.Trimesh:
     """Irregular stone with exact two-fold symmetry: 320 facets, closed, 0.12 m across.
 
     Like :func:`make_rock` (geodesic sphere of frequency 4, axis ratios 1 : 0.85 : 0.7), but
-    the smooth radial perturbation (seed 2003) is symmetrised, r(d) = f(d) + f(Rz(π) d), so a
+    the smooth radial perturbation is symmetrised (:func:`_symmetric_rock`), so a
     half turn about z maps the surface onto itself and no other rotation does. Contacts then
     fix the pose up to that half turn: two twin poses that place the surface identically.
     """
     sphere = _geodesic_sphere(4)
     d = sphere.vertices
-    turned = d * [-1.0, -1.0, 1.0]
-    field = _radial_noise(d, np.random.default_rng(2003), n_waves=6, max_freq=3.0)
-    field = field + _radial_noise(turned, np.random.default_rng(2003), n_waves=6, max_freq=3.0)
-    radius = 1.0 + 0.15 * field
-    radius *= np.linalg.norm(d * [1.0, 0.85, 0.7], axis=1)
-    return _star_shaped(d, sphere.faces, radius, 0.12)
+    shape = np.linalg.norm(d * [1.0, 0.85, 0.7], axis=1)
+    return _symmetric_rock(d, sphere.faces, np.diag([-1.0, -1.0, 1.0]), 2, shape)
+
+
+#: Rows: an orthonormal frame whose third axis is the icosahedron's three-fold axis (1, 1, 1) / √3.
+_THREEFOLD_FRAME = np.array([[1.0, -1.0, 0.0] / np.sqrt(2), [1.0, 1.0, -2.0] / np.sqrt(6),
+                             [1.0, 1.0, 1.0] / np.sqrt(3)])
+
+
+def make_tri_rock() -> trimesh.Trimesh:
+    """Irregular stone with exact three-fold symmetry about z: 320 facets, closed, 0.12 m across.
+
+    The geodesic sphere of :func:`make_twin_rock`, turned so that a three-fold axis of the
+    icosahedron is z. Base radius: axis ratios 1 : 1 : 0.7 times a rounded triangular
+    cross-section, 1 + 0.15 sin³θ cos 3φ; then the symmetrised perturbation of
+    :func:`_symmetric_rock`. A third of a turn about z maps the surface onto itself and no other
+    rotation does, so contacts fix the pose up to three twins 120° apart. The z axis passes
+    through the origin; z is centred on the bounding box.
+    """
+    sphere = _geodesic_sphere(4)
+    d = sphere.vertices @ _THREEFOLD_FRAME.T
+    x, y = d[:, 0], d[:, 1]
+    shape = np.linalg.norm(d * [1.0, 1.0, 0.7], axis=1) * (1.0 + 0.15 * (x**3 - 3 * x * y**2))
+    third = trimesh.transformations.rotation_matrix(2 * np.pi / 3, [0.0, 0.0, 1.0])[:3, :3]
+    rock = _symmetric_rock(d, sphere.faces, third, 3, shape)
+    axis = rock.vertices.mean(axis=0) * [1.0, 1.0, 0.0]  # a symmetric vertex set's mean is on the axis
+    return _mesh(rock.vertices - axis, rock.faces)
 
 
 _OBJECTS["twin_rock"] = make_twin_rock
+_OBJECTS["tri_rock"] = make_tri_rock

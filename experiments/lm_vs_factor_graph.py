@@ -16,12 +16,12 @@ where the truth does (ADD-S < SAME_CLASS_ADDS_FRAC · diameter, so symmetric twi
 ``strict``: rotation < 5° and translation < 5 % of the diameter.
 
 Parts: ``sweep`` (contact noise and prior noise, four objects), ``acceptance`` (prior on
-objects whose contacts alone are ambiguous: box, cylinder and the two-fold symmetric
-twin_rock, ≥ 300 grasps each, through ``localize(..., solver="factor-graph")``), ``outlier``
-(n = 5, one point moved by 20 % of the diameter, through ``localize(..., max_outliers=1)``),
-``speed`` (refinement time per hypothesis, Jacobian check). Writes CSV + config under
-results/lm_vs_factor_graph/ (rows of the parts run replace that part's rows in grasps.csv)
-and draws the figures from the CSVs alone::
+objects whose contacts alone are ambiguous: box, cylinder, the two-fold symmetric twin_rock
+and the three-fold symmetric tri_rock, ≥ 300 grasps each, through
+``localize(..., solver="factor-graph")``), ``outlier`` (n = 5, one point moved by 20 % of
+the diameter, through ``localize(..., max_outliers=1)``), ``speed`` (refinement time per
+hypothesis, Jacobian check). Writes CSV + config under results/lm_vs_factor_graph/ (rows
+of the parts run replace that part's rows in grasps.csv) and draws the figures from the CSVs alone::
 
     .venv/bin/python experiments/lm_vs_factor_graph.py            # full run
     .venv/bin/python experiments/lm_vs_factor_graph.py --quick    # smoke run, ~1 min
@@ -54,7 +54,8 @@ log = logging.getLogger("lm_vs_factor_graph")
 
 AMBIGUOUS_OBJECTS = ("box", "cylinder")
 #: Acceptance 1: contacts alone leave a discrete choice (symmetric twins, equally fitting poses).
-ACCEPTANCE_OBJECTS = ("box", "cylinder", "twin_rock")
+#: tri_rock comes last, so the other objects draw the same grasps as before it was added.
+ACCEPTANCE_OBJECTS = ("box", "cylinder", "twin_rock", "tri_rock")
 DISTINCT_OBJECTS = ("banana", "rock")
 #: (σ_x as a fraction of the diameter, σ_n in degrees), sensor noise levels of the sweep.
 CONTACT_NOISE = ((0.001, 0.5), (0.0025, 1.0), (0.005, 2.0), (0.0075, 3.0))

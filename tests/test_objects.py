@@ -7,7 +7,7 @@ from scipy.spatial import cKDTree
 from contactpose import objects
 from contactpose.errors import ContactPoseError
 
-CLOSED = ["banana512", "carton", "rock", "rock1k", "box", "cylinder", "sphere", "twin_rock"]
+CLOSED = ["banana512", "carton", "rock", "rock1k", "box", "cylinder", "sphere", "twin_rock", "tri_rock"]
 
 FACET_COUNTS = {
     "banana": (53, 53),
@@ -19,6 +19,7 @@ FACET_COUNTS = {
     "cylinder": (96, 96),
     "sphere": (320, 320),
     "twin_rock": (320, 320),
+    "tri_rock": (320, 320),
 }
 
 # Bounding-box extents (m), sorted descending, with an absolute tolerance.
@@ -110,7 +111,8 @@ def test_extents(meshes, name):
     assert np.allclose(np.sort(meshes[name].extents)[::-1], expected, atol=tol)
 
 
-@pytest.mark.parametrize("name, size", [("rock", 0.12), ("rock1k", 0.15), ("twin_rock", 0.12)])
+@pytest.mark.parametrize("name, size", [("rock", 0.12), ("rock1k", 0.15), ("twin_rock", 0.12),
+                                             ("tri_rock", 0.12)])
 def test_rock_size_and_irregularity(meshes, name, size):
     extents = meshes[name].extents
     assert extents.max() == pytest.approx(size)
@@ -173,15 +175,44 @@ def test_non_string_name_raises():
         objects.load(42)
 
 
+def _turn_gap(mesh):
+    """Function of R (3, 3): mean distance (m) of 4000 surface samples turned by R to a dense sample."""
+    points = _sample_surface(mesh, 4000, 5)
+    tree = cKDTree(_sample_surface(mesh, 200000, 6))
+    return lambda R: np.mean(tree.query(points @ R.T)[0])
+
+
 def test_twin_rock_has_exactly_one_half_turn_symmetry(meshes):
     """A half turn about z maps the surface onto itself; the half turns about x and y move it
     by 5 % of its size on average (mean distance of surface samples to a dense sample)."""
     mesh = meshes["twin_rock"]
-    points = _sample_surface(mesh, 4000, 5)
-    tree = cKDTree(_sample_surface(mesh, 200000, 6))
-    gap = lambda R: np.mean(tree.query(points @ R.T)[0])  # noqa: E731
+    gap = _turn_gap(mesh)
     half_z = np.diag([-1.0, -1.0, 1.0])
     assert np.abs(np.sort(mesh.vertices @ half_z.T, axis=0) - np.sort(mesh.vertices, axis=0)).max() < 1e-12
     assert gap(half_z) < 1.1 * gap(np.eye(3))  # the sampling floor
     for R in (np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0])):
         assert gap(R) > 0.04 * mesh.extents.max()
+
+
+def _turn_z(angle):
+    """(3, 3) rotation by ``angle`` (rad) about z."""
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def test_tri_rock_has_exactly_one_three_fold_symmetry(meshes):
+    """A third of a turn about z maps the mesh onto itself, vertex onto vertex and facet onto
+    facet with its winding; a half turn about z, x or y moves the surface by over 2 % of its
+    size on average, and a 10° turn about z by over 1 % (the symmetry is discrete)."""
+    mesh = meshes["tri_rock"]
+    third = _turn_z(2 * np.pi / 3)
+    dist, image = cKDTree(mesh.vertices).query(mesh.vertices @ third.T)
+    assert dist.max() < 1e-12
+    assert np.array_equal(np.sort(image), np.arange(len(mesh.vertices)))  # a permutation
+    cyclic = lambda faces: {tuple(np.roll(f, -np.argmin(f))) for f in faces}  # noqa: E731
+    assert cyclic(image[mesh.faces]) == cyclic(mesh.faces)
+    gap = _turn_gap(mesh)
+    assert gap(third) < 1.1 * gap(np.eye(3))  # the sampling floor
+    for R in (_turn_z(np.pi), np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, 1.0, -1.0])):
+        assert gap(R) > 0.02 * mesh.extents.max()
+    assert gap(_turn_z(np.radians(10))) > 0.01 * mesh.extents.max()
