@@ -28,7 +28,9 @@ def _as_vectors(name, values, n=None):
         raise ContactsError(f"{name} must have shape {want}, got shape {arr.shape}")
     bad = ~np.isfinite(arr).all(axis=1)
     if bad.any():
-        raise ContactsError(f"{name} has a NaN or inf entry in row {np.flatnonzero(bad)[0]}")
+        i = np.flatnonzero(bad)[0]
+        raise ContactsError(f"{name} has a NaN or inf entry in row {i}: {arr[i].tolist()}; "
+                            "every entry must be a finite number")
     return arr
 
 
@@ -55,12 +57,14 @@ def _unit(name, normals):
 class Contacts:
     """n >= 2 measured contacts in the world frame.
 
-    points : (n, 3) float; finger_normals : (n, 3) float, unit. Give exactly one of
+    points : (n, 3) float; finger_normals : (n, 3) float, unit; spread : the largest
+    distance between two contacts. Give exactly one of
     ``finger_normals`` (the paper's ñ) or ``object_normals`` (= -ñ) to the constructor.
     """
 
     points: np.ndarray
     finger_normals: np.ndarray
+    spread: float
 
     def __init__(self, points, finger_normals=None, object_normals=None):
         if (finger_normals is None) == (object_normals is None):
@@ -72,11 +76,12 @@ class Contacts:
             normals = _unit("finger_normals", _as_vectors("finger_normals", finger_normals, len(pts)))
         else:
             normals = -_unit("object_normals", _as_vectors("object_normals", object_normals, len(pts)))
-        _check_spacing(pts)
+        spread = _check_spacing(pts)
         pts.flags.writeable = False
         normals.flags.writeable = False
         object.__setattr__(self, "points", pts)
         object.__setattr__(self, "finger_normals", normals)
+        object.__setattr__(self, "spread", spread)
 
     @property
     def n(self):
@@ -102,7 +107,8 @@ class Contacts:
 
 
 def _check_spacing(points):
-    """Distinct contacts whose distances fit in a float. points : (n, 3) finite."""
+    """Distinct contacts whose distances fit in a float, else ContactsError; returns the
+    largest distance. points : (n, 3) finite."""
     with np.errstate(over="ignore", invalid="ignore"):
         diff = points[:, None, :] - points[None, :, :]
         dist = np.sqrt(np.einsum("ijk,ijk->ij", diff, diff))
@@ -114,6 +120,7 @@ def _check_spacing(points):
     i, j = np.nonzero(np.triu(dist <= 1e-12 * scale, 1))
     if len(i):
         raise ContactsError(f"contacts {i[0]} and {j[0]} are at the same point {points[i[0]].tolist()}; each finger needs its own contact")
+    return float(dist.max())
 
 
 @dataclass(frozen=True)

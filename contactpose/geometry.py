@@ -64,6 +64,11 @@ def _sub(u, v):
 
 
 @njit(cache=True)
+def _add(u, v):
+    return (u[0] + v[0], u[1] + v[1], u[2] + v[2])
+
+
+@njit(cache=True)
 def _axpy(s, u, v):
     """v + s * u."""
     return (v[0] + s * u[0], v[1] + s * u[1], v[2] + s * u[2])

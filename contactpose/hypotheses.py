@@ -167,14 +167,16 @@ def placement_order(S, n):
     order) of the placed finger it is expanded from: first the most selective pair, then
     always the (new, placed) finger pair with the fewest admissible facet pairs.
     Returns (order (n,) int64, parent (n,) int64; parent of the first two is -1)."""
-    size = {key: len(S[key]) for key in S}
-    start = min(size, key=size.get)
-    order, parent = list(start), [-1, -1]
+    size = {pair: len(S[pair]) for pair in S}
+    order, parent = list(min(size, key=size.get)), [-1, -1]
     while len(order) < n:
-        f, a = min(((f, a) for f in range(n) if f not in order for a in order),
-                   key=lambda fa: size[(min(fa), max(fa))])
-        order.append(f)
-        parent.append(order.index(a))
+        best = (np.inf, -1, -1)  # (size, new finger, position of the placed one); ties: first
+        for f in range(n):
+            for b, a in enumerate(order if f not in order else ()):
+                if size[(min(a, f), max(a, f))] < best[0]:
+                    best = (size[(min(a, f), max(a, f))], f, b)
+        order.append(best[1])
+        parent.append(best[2])
     return np.array(order, dtype=np.int64), np.array(parent, dtype=np.int64)
 
 

@@ -35,7 +35,7 @@ import numba
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from contactpose.geometry import closest_point_triangle
+from contactpose.geometry import _add, _axpy, _closest_on_triangle, _cross, _d2, _dot, _sub, _t  # 3-tuple kernels
 
 #: Alternating-minimisation steps before the bound is taken (it is valid after any number).
 STEPS = 6
@@ -44,18 +44,30 @@ STEPS = 6
 #: times: the first-order error (~1 % measured) could matter there.
 RELINEARISE_BAND = 1.5
 RELINEARISE = 3
+#: Hypotheses checked at a time by within_noise(..., enough=...).
+CHUNK = 64
 
 
-def within_noise(model, contacts, arrays, tolerance, threshold):
+def within_noise(model, contacts, arrays, tolerance, threshold, enough=None):
     """(H,) bool: the hypotheses whose best full χ² (triangles included) may be within
-    ``threshold``, by the lower bound above. arrays : HypothesisArrays."""
+    ``threshold``, by the lower bound above. arrays : HypothesisArrays.
+
+    enough : check in rank order, CHUNK at a time, and stop once this many hypotheses are
+    known to fit: the first ``enough`` fitting ones are exact, the rest may be left False.
+    """
     chi2 = arrays.chi2
-    lateral = np.nan_to_num(arrays.residuals[..., 4])
-    plane = chi2 - np.sum(lateral**2, axis=1) / tolerance.position_noise**2
+    lateral = arrays.residuals[..., 4] ** 2
+    lateral[np.isnan(lateral)] = 0.0                       # unassigned fingers (max_outliers)
+    plane = chi2 - np.sum(lateral, axis=1) / tolerance.position_noise**2
     ok = chi2 <= threshold
     check = np.flatnonzero(~ok & (plane <= threshold))
-    if len(check):
-        ok[check] = lowest_chi2_bound(model, contacts, arrays, check, tolerance, threshold) <= threshold
+    chunk = max(len(check), 1) if enough is None else CHUNK
+    for lo in range(0, len(check), chunk):
+        if enough is not None and np.count_nonzero(ok[:check[lo]]) >= enough:
+            ok[check[lo]:] = False
+            break
+        rows = check[lo:lo + chunk]
+        ok[rows] = lowest_chi2_bound(model, contacts, arrays, rows, tolerance, threshold) <= threshold
     return ok
 
 
@@ -74,7 +86,7 @@ def lowest_chi2_bound(model, contacts, arrays, rows, tolerance, threshold=None, 
     # the tangent bound needs a convex region: one triangle, and a pose with no free direction
     determined = ~arrays.fit.underdetermined[rows] & (np.diff(indptr)[regions] == 1).all(axis=1)
     free = arrays.fit.underdetermined[rows]
-    shape = (model.triangles, model.centroids, _facet_radii(model), indptr, members,
+    shape = (model.triangles, model.centroids, model.facet_radii, indptr, members,
              np.inf if threshold is None else float(threshold))
     bound, xi = _bounds(R, t, *planes, contacts, *weights, determined, free, shape, steps)
     for _ in range(RELINEARISE):
@@ -98,11 +110,6 @@ def _regions(model, facets):
     return model.patches.labels[facets], model.patches.indptr, model.patches.members
 
 
-def _facet_radii(model):
-    """(m,) distance from each facet's centroid to its farthest vertex."""
-    return np.linalg.norm(model.triangles - model.centroids[:, None], axis=2).max(axis=1)
-
-
 def _bounds(R, t, normals, offsets, regions, contacts, wn, wx, determined, free, shape, steps):
     """The bound about (R, t) and the ξ the alternating minimisation reached: (K,), (K, 6)."""
     bound, xi = np.empty(len(R)), np.empty((len(R), 6))
@@ -118,74 +125,169 @@ def _bound_kernel(R, t, normals, offsets, points, finger_normals, wn, wx, region
     """Per hypothesis: the plane quadratic (A, g, χ²_0), alternating minimisation of the
     linearised χ² from ξ = 0, and the closed-form minimum of the lower bound there. Where
     that bound does not hold (``determined`` false: a free direction, or a patch of several
-    triangles, which need not be convex) the linearised χ² the minimisation reached."""
+    triangles, which need not be convex) the linearised χ² the minimisation reached.
+
+    In the object frame G_i ξ = p_i × ω - v and G_iᵀ u = (u × p_i, -u), so
+    G_iᵀG_i = [[|p|²I - ppᵀ, [p]×], [-[p]×, I]]; the offset row is j_o = (n × p, -n)."""
     n = points.shape[0]
+    A, H, chol = np.empty((6, 6)), np.empty((6, 6)), np.empty((6, 6))
+    g, g_n, p = np.empty(6), np.empty(6), np.empty((n, 3))
     for k in range(R.shape[0]):
-        A, g, H, g_n, A_n = np.zeros((6, 6)), np.zeros(6), np.zeros((6, 6)), np.zeros(6), np.zeros((3, 3))
+        A[:], H[:], g[:], g_n[:] = 0.0, 0.0, 0.0, 0.0
         chi2_0 = 0.0
-        p, G = np.empty((n, 3)), np.empty((n, 3, 6))
         for i in range(n):
-            nrm = normals[k, i]
-            p[i] = R[k].T @ (points[i] - t[k])
-            G[i] = _motion(p[i])
-            r_n = R[k] @ nrm + finger_normals[i]
-            r_o = nrm @ p[i] + offsets[k, i]
-            chi2_0 += wn[k, i] * (r_n @ r_n) + wx[k, i] * r_o**2
-            # normal term: J_n = -R[n]×, J_nᵀJ_n = I - n nᵀ, J_nᵀ r_n = n × Rᵀ r_n
-            A_n += wn[k, i] * (np.eye(3) - np.outer(nrm, nrm))
-            g_n[:3] += wn[k, i] * np.cross(nrm, R[k].T @ r_n)
-            j_o = nrm @ G[i]
-            A += wx[k, i] * np.outer(j_o, j_o)
-            g += wx[k, i] * r_o * j_o
-            H += wx[k, i] * (G[i].T @ G[i])
-        A[:3, :3] += A_n
-        H[:3, :3] += A_n
-        g += g_n
-        H += 1e-12 * np.trace(H) * np.eye(6)
+            pi = _rt_apply(R[k], _sub(_t(points[i]), _t(t[k])))
+            p[i, 0], p[i, 1], p[i, 2] = pi
+            nrm = _t(normals[k, i])
+            r_n = _add(_r_apply(R[k], nrm), _t(finger_normals[i]))
+            r_o = _dot(nrm, pi) + offsets[k, i]
+            chi2_0 += wn[k, i] * _dot(r_n, r_n) + wx[k, i] * r_o * r_o
+            # normal term: J_nᵀJ_n = I - n nᵀ, J_nᵀ r_n = n × Rᵀ r_n
+            gn = _cross(nrm, _rt_apply(R[k], r_n))
+            j_o = _cross(nrm, pi)
+            pp = _dot(pi, pi)
+            for a in range(3):
+                g_n[a] += wn[k, i] * gn[a]
+                g[a] += wx[k, i] * r_o * j_o[a]
+                g[a + 3] -= wx[k, i] * r_o * nrm[a]
+                for b in range(3):
+                    a_n = wn[k, i] * ((a == b) - nrm[a] * nrm[b])
+                    A[a, b] += a_n + wx[k, i] * j_o[a] * j_o[b]
+                    A[a, b + 3] -= wx[k, i] * j_o[a] * nrm[b]
+                    A[a + 3, b] -= wx[k, i] * nrm[a] * j_o[b]
+                    A[a + 3, b + 3] += wx[k, i] * nrm[a] * nrm[b]
+                    H[a, b] += a_n + wx[k, i] * ((a == b) * pp - pi[a] * pi[b])
+                    H[a + 3, b + 3] += wx[k, i] * (a == b)
+            _add_skew(H, pi, wx[k, i])
+        for a in range(6):
+            g[a] += g_n[a]
+        trace = 0.0
+        for a in range(6):
+            trace += H[a, a]
+        for a in range(6):
+            H[a, a] += 1e-12 * trace
+        _cholesky(H, chol)
         many = np.any(indptr[regions[k] + 1] - indptr[regions[k]] > 1)
-        reach = _reach(A, g, chi2_0, G, threshold) if many and not free[k] else np.full(n, np.inf)
+        reach = _reach(A, g, chi2_0, p, threshold) if many and not free[k] else np.full(n, np.inf)
         cand, count = _candidates(p, reach, regions[k], centres, radii, indptr, members)
-        xi, last = _alternate(p, G, cand, count, triangles, centres, radii, wx[k], np.linalg.inv(H), g_n,
+        xi, last = _alternate(p, cand, count, triangles, centres, radii, wx[k], chol, g_n,
                               steps if determined[k] else 4 * steps)
-        h, const, reached = np.zeros(6), chi2_0, 0.0
+        w, v = (xi[0], xi[1], xi[2]), (xi[3], xi[4], xi[5])
+        h = np.zeros(6)
+        const, reached = chi2_0, 0.0
         for i in range(n):
-            q = p[i] + G[i] @ xi
-            d = q - _closest_of(q, cand[i, :count[i]], triangles, centres, radii, last[i])[0]
-            u = d - (d @ normals[k, i]) * normals[k, i]      # in-plane: |u| = r_l at q
-            h += wx[k, i] * (G[i].T @ u)
-            const += wx[k, i] * (u @ u)
-            r_n = R[k] @ (normals[k, i] + np.cross(xi[:3], normals[k, i])) + finger_normals[i]
-            reached += wn[k, i] * (r_n @ r_n) + wx[k, i] * (d @ d)
-        gh = g + h
-        bound[k] = const - 2.0 * (h @ xi) - gh @ np.linalg.solve(A, gh) if determined[k] else reached
+            pi = _t(p[i])
+            q = _sub(_add(pi, _cross(pi, w)), v)
+            d = _sub(q, _closest_of(q, cand[i, :count[i]], triangles, centres, radii, last[i])[0])
+            nrm = _t(normals[k, i])
+            u = _axpy(-_dot(d, nrm), nrm, d)                 # in-plane: |u| = r_l at q
+            gu = _cross(u, pi)
+            for a in range(3):
+                h[a] += wx[k, i] * gu[a]
+                h[a + 3] -= wx[k, i] * u[a]
+            const += wx[k, i] * _dot(u, u)
+            r_n = _add(_r_apply(R[k], _add(nrm, _cross(w, nrm))), _t(finger_normals[i]))
+            reached += wn[k, i] * _dot(r_n, r_n) + wx[k, i] * _dot(d, d)
+        if determined[k]:
+            gh = g + h
+            bound[k] = const - 2.0 * (h @ xi) - gh @ np.linalg.solve(A, gh)
+        else:
+            bound[k] = reached
         xi_out[k] = xi
 
 
 @numba.njit(cache=True)
-def _alternate(p, G, cand, count, triangles, centres, radii, wx, H_inv, g_n, steps):
+def _rt_apply(R, x):
+    """Rᵀ x for a (3, 3) array R and a 3-tuple x."""
+    return (R[0, 0] * x[0] + R[1, 0] * x[1] + R[2, 0] * x[2],
+            R[0, 1] * x[0] + R[1, 1] * x[1] + R[2, 1] * x[2],
+            R[0, 2] * x[0] + R[1, 2] * x[1] + R[2, 2] * x[2])
+
+
+@numba.njit(cache=True)
+def _r_apply(R, x):
+    """R x for a (3, 3) array R and a 3-tuple x."""
+    return (R[0, 0] * x[0] + R[0, 1] * x[1] + R[0, 2] * x[2],
+            R[1, 0] * x[0] + R[1, 1] * x[1] + R[1, 2] * x[2],
+            R[2, 0] * x[0] + R[2, 1] * x[1] + R[2, 2] * x[2])
+
+
+@numba.njit(cache=True)
+def _add_skew(H, p, w):
+    """H[:3, 3:] += w [p]×, H[3:, :3] -= w [p]× (the off-diagonal blocks of GᵀG)."""
+    skew = ((0.0, -p[2], p[1]), (p[2], 0.0, -p[0]), (-p[1], p[0], 0.0))
+    for a in range(3):
+        for b in range(3):
+            H[a, b + 3] += w * skew[a][b]
+            H[a + 3, b] -= w * skew[a][b]
+
+
+@numba.njit(cache=True)
+def _cholesky(H, L):
+    """Lower Cholesky factor L of the symmetric positive definite (6, 6) H, in place."""
+    L[:] = 0.0
+    for j in range(6):
+        s = H[j, j]
+        for c in range(j):
+            s -= L[j, c] * L[j, c]
+        L[j, j] = np.sqrt(max(s, 1e-300))
+        for r in range(j + 1, 6):
+            s = H[r, j]
+            for c in range(j):
+                s -= L[r, c] * L[j, c]
+            L[r, j] = s / L[j, j]
+
+
+@numba.njit(cache=True)
+def _cho_solve(L, b, x):
+    """x = (L Lᵀ)⁻¹ b for the Cholesky factor L (6, 6)."""
+    for r in range(6):
+        s = b[r]
+        for c in range(r):
+            s -= L[r, c] * x[c]
+        x[r] = s / L[r, r]
+    for r in range(5, -1, -1):
+        s = x[r]
+        for c in range(r + 1, 6):
+            s -= L[c, r] * x[c]
+        x[r] = s / L[r, r]
+
+
+@numba.njit(cache=True)
+def _alternate(p, cand, count, triangles, centres, radii, wx, chol, g_n, steps):
     """Minimise the linearised χ² over ξ, alternating closest points c_i in the contacts'
     regions with the ξ that best meets them: H ξ = -(g_n + Σ_i wx G_iᵀ (p_i - c_i)).
     Returns ξ (6,) and where each contact's closest triangle sits in its candidates."""
-    xi, last = np.zeros(6), np.zeros(len(p), dtype=np.int64)
+    xi, rhs, last = np.zeros(6), np.empty(6), np.zeros(len(p), dtype=np.int64)
     for _ in range(steps):
-        rhs = g_n.copy()
+        rhs[:] = g_n
+        w, v = (xi[0], xi[1], xi[2]), (xi[3], xi[4], xi[5])
         for i in range(len(p)):
-            c, last[i] = _closest_of(p[i] + G[i] @ xi, cand[i, :count[i]], triangles, centres, radii, last[i])
-            rhs += wx[i] * (G[i].T @ (p[i] - c))
-        xi = -(H_inv @ rhs)
+            pi = _t(p[i])
+            q = _sub(_add(pi, _cross(pi, w)), v)
+            c, last[i] = _closest_of(q, cand[i, :count[i]], triangles, centres, radii, last[i])
+            u = _sub(pi, c)
+            gu = _cross(u, pi)
+            for a in range(3):
+                rhs[a] += wx[i] * gu[a]
+                rhs[a + 3] -= wx[i] * u[a]
+        _cho_solve(chol, rhs, xi)
+        for a in range(6):
+            xi[a] = -xi[a]
     return xi, last
 
 
 @numba.njit(cache=True)
-def _reach(A, g, chi2_0, G, threshold):
+def _reach(A, g, chi2_0, p, threshold):
     """How far each contact can move, to first order, among the poses whose plane χ² is
     within ``threshold``: |G_i ξ*| + sqrt(b · trace(G_i A⁻¹ G_iᵀ)), b = threshold - χ²_min."""
     A_inv = np.linalg.pinv(A)
     step = -(A_inv @ g)
     budget = max(threshold - (chi2_0 + g @ step), 0.0)
-    reach = np.empty(len(G))
-    for i in range(len(G)):
-        reach[i] = np.sqrt(np.sum((G[i] @ step) ** 2)) + np.sqrt(budget * np.trace(G[i] @ A_inv @ G[i].T))
+    reach = np.empty(len(p))
+    for i in range(len(p)):
+        G = _motion(p[i])
+        reach[i] = np.sqrt(np.sum((G @ step) ** 2)) + np.sqrt(budget * np.trace(G @ A_inv @ G.T))
     return reach
 
 
@@ -212,18 +314,19 @@ def _candidates(p, reach, regions, centres, radii, indptr, members):
 
 @numba.njit(cache=True)
 def _closest_of(q, facets, triangles, centres, radii, start):
-    """Closest point to q on the given triangles, and its position in ``facets``. facets[start]
-    (the last answer) goes first, so the bounding spheres of most others rule them out."""
+    """Closest point (3-tuple) to the 3-tuple q on the given triangles, and its position in
+    ``facets``. facets[start] (the last answer) goes first, so the bounding spheres of most
+    others rule them out."""
     best, out, at = np.inf, q, start
     for j in range(len(facets)):
         e = (start + j) % len(facets)
         f = facets[e]
-        gap = np.sqrt(np.sum((q - centres[f]) ** 2)) - radii[f]
+        gap = np.sqrt(_d2(q, _t(centres[f]))) - radii[f]
         if gap > 0.0 and gap * gap >= best:
             continue
         tri = triangles[f]
-        c = closest_point_triangle(q, tri[0], tri[1], tri[2])
-        d = (q - c) @ (q - c)
+        c = _closest_on_triangle(q, _t(tri[0]), _t(tri[1]), _t(tri[2]))
+        d = _d2(q, c)
         if d < best:
             best, out, at = d, c, e
     return out, at

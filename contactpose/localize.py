@@ -16,7 +16,6 @@ from dataclasses import dataclass, field
 from functools import lru_cache
 
 import numpy as np
-from scipy.spatial.distance import pdist
 
 from contactpose import residuals as res
 from contactpose.contacts import Contacts, Tolerance, pair_conditions
@@ -24,7 +23,7 @@ from contactpose.errors import ContactPoseError, PriorError, ResourceError
 from contactpose.hypotheses import TripleTest, admissible_pairs, join_tuples, join_tuples_paper
 from contactpose.infacet import within_noise
 from contactpose.patches import nearest_members
-from contactpose.metrics import SAME_CLASS_ADDS_FRAC, adds, displacement_bound
+from contactpose.metrics import SAME_CLASS_ADDS_FRAC, adds_many, rms_displacement
 from contactpose.solvers.closed_form import PoseFit, fit_poses
 from contactpose.solvers.lm import fit_lm_all
 
@@ -309,7 +308,8 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
         arrays, rescue = _refine(model, contacts, arrays, tolerance, prior, robust, refine)
         timing["refine"] = time.perf_counter() - refine_start
     classes_start = time.perf_counter()
-    fits = None if method == "paper" else within_noise(model, contacts, arrays, tolerance, fit_threshold(contacts.n))
+    fits = None if method == "paper" else within_noise(model, contacts, arrays, tolerance, fit_threshold(contacts.n),
+                                                       enough=MAX_CLASS_HYPOTHESES)
     classes = pose_classes(model, arrays, contacts.n, fits)
     status, hint = _status(model, contacts, arrays, classes, tolerance)
     if rescue:
@@ -516,35 +516,53 @@ def pose_classes(model, arrays, n, fits=None):
     """Group the hypotheses that fit within noise into pose classes, best class first.
 
     fits : (H,) bool, the hypotheses that fit (default: χ² <= fit_threshold(n)). A
-    hypothesis joins the first class whose best pose is within ADD-S of it, else opens one.
+    hypothesis joins the first class whose best pose is within ADD-S of it, else opens one:
+    each new class takes the best hypothesis left, then every later one that matches it.
     """
     fits = np.flatnonzero(arrays.chi2 <= fit_threshold(n) if fits is None else fits)[:MAX_CLASS_HYPOTHESES]
-    limit = SAME_CLASS_ADDS_FRAC * model.diameter
-    reps, members = [], []
-    for i in fits:
-        for c, r in enumerate(reps):
-            if _same_placement(model, arrays.poses[i], arrays.poses[r], limit):
-                members[c].append(i)
-                break
-        else:
-            reps.append(i)
-            members.append([i])
-    if not reps:
+    if not len(fits):
         return []
+    poses = arrays.poses[fits]
+    label = np.full(len(fits), -1)
+    reps = []
+    while (left := np.flatnonzero(label < 0)).size:
+        rest = left[1:]
+        label[left[0]] = len(reps)
+        if len(rest):
+            label[rest[same_placement(model, poses[rest], poses[left[0]])]] = len(reps)
+        reps.append(fits[left[0]])
+    members = [fits[label == c] for c in range(len(reps))]
     chi2 = arrays.chi2
     if arrays.probability is not None:  # the factor graph's Laplace evidence
         weight = np.array([np.sum(arrays.probability[m]) for m in members])
     else:
         weight = np.array([np.sum(np.exp(-0.5 * (chi2[m] - chi2[fits[0]]))) for m in members])
     prob = weight / weight.sum()
-    return [PoseClass(np.array(m), int(r), arrays.poses[r], float(chi2[r]), float(p))
+    return [PoseClass(m, int(r), arrays.poses[r], float(chi2[r]), float(p))
             for m, r, p in zip(members, reps, prob)]
 
 
-def _same_placement(model, T_a, T_b, limit):
-    if displacement_bound(T_a, T_b, model.surface_radius) <= limit:
-        return True  # ADD-S cannot exceed the largest displacement
-    return adds(T_a, T_b, model.surface_points, model.surface_tree) <= limit
+def same_placement(model, poses, pose):
+    """(K,) bool: whether each of poses (K, 4, 4) places the surface as ``pose`` does, ADD-S
+    below SAME_CLASS_ADDS_FRAC of the diameter, measured on the model's class_points.
+
+    The RMS displacement D bounds ADD from above in closed form, and ADD-S obeys
+    |ADD-S(a, pose) - ADD-S(b, pose)| <= ADD(a, b) <= D(a, b). So nearest points are
+    queried only for an "anchor" among the undecided poses, whose ADD-S then decides every
+    pose within those bounds of it; the answer is ADD-S of each pose against the limit.
+    """
+    limit = SAME_CLASS_ADDS_FRAC * model.diameter
+    points, moments = model.class_points, model.class_moments
+    same = rms_displacement(poses, pose, *moments) <= limit
+    undecided = np.flatnonzero(~same)
+    while len(undecided):
+        anchor, rest = undecided[0], undecided[1:]
+        s = adds_many(poses[anchor][None], pose, points, model.surface_tree)[0]
+        d = rms_displacement(poses[rest], poses[anchor], *moments)
+        same[anchor] = s <= limit
+        same[rest[s + d <= limit]] = True
+        undecided = rest[(s + d > limit) & (s - d <= limit)]
+    return same
 
 
 def _status(model, contacts, arrays, classes, tolerance):
@@ -563,7 +581,7 @@ def _status(model, contacts, arrays, classes, tolerance):
 
 def contact_spread(contacts):
     """Largest distance between two contacts."""
-    return float(np.max(pdist(contacts.points)))
+    return contacts.spread
 
 
 def _check_span(model, conditions, tolerance):

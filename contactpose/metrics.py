@@ -35,12 +35,28 @@ def relative_points(T_a, T_b, points):
     return points @ T[:3, :3].T + T[:3, 3]
 
 
-def displacement_bound(T_a, T_b, radius):
-    """Upper bound on how far any point within ``radius`` of the object origin moves
-    between T_a and T_b: 2 sin(θ/2)·radius + |Δt| (so also an upper bound on ADD-S)."""
-    T = np.linalg.solve(T_b, T_a)
-    cos = np.clip((np.trace(T[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
-    return float(np.sqrt(2.0 * (1.0 - cos)) * radius + np.linalg.norm(T[:3, 3]))
+def rms_displacement(T_a, T_b, mean, second):
+    """Root-mean-square distance each surface point moves between poses T_a (K of them) and
+    T_b, from the points' moments: an upper bound on ADD and hence on ADD-S (Jensen).
+
+    T_a : (K, 4, 4), T_b : (4, 4); mean : (3,) and second : (3, 3) = E[p pᵀ] of the
+    object-frame surface points  ->  (K,). With M = R - I and t of T_b⁻¹ T_a,
+    E|M p + t|² = tr(M E[ppᵀ] Mᵀ) + 2 tᵀ M E[p] + |t|².
+    """
+    Rb_t = T_b[:3, :3].T
+    M = Rb_t @ T_a[:, :3, :3] - np.eye(3)
+    t = (T_a[:, :3, 3] - T_b[:3, 3]) @ Rb_t.T
+    msq = (np.einsum("kij,jl,kil->k", M, second, M) + 2.0 * np.einsum("ki,kij,j->k", t, M, mean)
+           + np.einsum("ki,ki->k", t, t))
+    return np.sqrt(np.maximum(msq, 0.0))
+
+
+def adds_many(T_a, T_b, points, tree):
+    """ADD-S of K poses T_a (K, 4, 4) against one pose T_b (4, 4)  ->  (K,); see :func:`adds`."""
+    T = np.linalg.solve(T_b[None], T_a)
+    moved = np.einsum("kij,nj->kni", T[:, :3, :3], points) + T[:, None, :3, 3]
+    dist, _ = tree.query(moved.reshape(-1, 3))
+    return dist.reshape(len(T_a), len(points)).mean(axis=1)
 
 
 def adds(T_a, T_b, points, tree):

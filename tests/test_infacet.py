@@ -100,3 +100,18 @@ def test_bound_rejects_what_no_pose_can_fit(rock_model):
     assert len(rejected)
     for row in rejected[:5]:
         assert refined_chi2(model, g.contacts, a.facets[row], a.poses[row], r.tolerance) > fit_threshold(4)
+
+
+def test_enough_stops_early_without_changing_the_first_fits(rock_model):
+    """within_noise(..., enough=K) marks the same first K fitting hypotheses (in rank order)
+    as the full check."""
+    model = rock_model
+    compared = 0
+    for g, r in located(model, 24, 10):
+        a = r.hypotheses.arrays
+        full = np.flatnonzero(within_noise(model, g.contacts, a, r.tolerance, fit_threshold(4)))
+        for k in (1, 3, 10):
+            part = np.flatnonzero(within_noise(model, g.contacts, a, r.tolerance, fit_threshold(4), enough=k))
+            assert part[:k].tolist() == full[:k].tolist()
+            compared += len(full) > k
+    assert compared > 3

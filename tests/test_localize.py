@@ -17,8 +17,9 @@ from contactpose import simulate
 from contactpose.contacts import Contacts, Tolerance, pair_conditions
 from contactpose.errors import ContactPoseError, ContactsError, PriorError
 from contactpose.hypotheses import TripleTest, admissible_pairs, join_tuples, sorted_rows
-from contactpose.localize import PosePrior, fit_threshold, localize
-from contactpose.metrics import SAME_CLASS_ADDS_FRAC, adds, rotation_error_deg
+from contactpose.localize import MAX_CLASS_HYPOTHESES, PosePrior, fit_threshold, localize, pose_classes
+from contactpose.metrics import (SAME_CLASS_ADDS_FRAC, adds, adds_many, relative_points, rms_displacement,
+                                 rotation_error_deg)
 from contactpose.solvers.closed_form import fit_poses, wahba
 from contactpose.solvers.lm import eq7_residuals, fit_lm
 
@@ -318,6 +319,56 @@ def test_status_ok_means_the_truth_is_the_only_fitting_pose_class(banana_model, 
                 ok += 1
                 assert adds(r.best.pose, g.pose, model.surface_points, model.surface_tree) < limit
     assert ok >= 15
+
+
+def naive_pose_classes(model, poses):
+    """Reference twin of pose_classes' grouping: each pose joins the first class whose best
+    pose is within ADD-S (on class_points, against all surface points), else opens one."""
+    limit = SAME_CLASS_ADDS_FRAC * model.diameter
+    reps, labels = [], []
+    for T in poses:
+        c = next((c for c, r in enumerate(reps)
+                  if adds(T, poses[r], model.class_points, model.surface_tree) <= limit), None)
+        if c is None:
+            c = len(reps)
+            reps.append(len(labels))
+        labels.append(c)
+    return labels
+
+
+def test_pose_classes_equal_the_naive_grouping(rock_model, box_model):
+    """The bounds that spare nearest-point queries (RMS displacement, anchors) never change a
+    class: hypotheses of real grasps and random poses grouped both ways agree."""
+    rng = np.random.default_rng(31)
+    checked = 0
+    for model in (rock_model, box_model):
+        for _ in range(6):
+            g = simulate.grasp(model, rng, n=4, noise="bounded", **NOISE)
+            a = localize(model, g.contacts, **NOISE).hypotheses.arrays
+            fits = np.ones(len(a.cost), dtype=bool)
+            classes = pose_classes(model, a, 4, fits)
+            labels = np.empty(min(len(a.cost), MAX_CLASS_HYPOTHESES), dtype=int)
+            for c, cls in enumerate(classes):
+                labels[cls.members] = c
+            assert labels.tolist() == naive_pose_classes(model, a.poses[:len(labels)])
+            checked += len(classes) > 1
+    assert checked >= 2
+
+
+def test_rms_displacement_bounds_adds(rock_model):
+    """RMS displacement from the moments equals the direct mean over the points, and bounds
+    ADD-S from above; adds_many equals adds pose by pose."""
+    rng = np.random.default_rng(32)
+    base = rigid(rng)
+    poses = np.array([base @ rigid(rng, 0.01) for _ in range(20)])
+    pts = rock_model.class_points
+    rms = rms_displacement(poses, base, *rock_model.class_moments)
+    moved = [relative_points(T, base, pts) for T in poses]
+    direct = [np.sqrt(np.mean(np.sum((q - pts) ** 2, axis=1))) for q in moved]
+    assert np.allclose(rms, direct, rtol=1e-9, atol=1e-12)
+    many = adds_many(poses, base, pts, rock_model.surface_tree)
+    assert np.allclose(many, [adds(T, base, pts, rock_model.surface_tree) for T in poses], rtol=1e-12)
+    assert np.all(many <= rms + 1e-12)
 
 
 def test_status_no_hypothesis_for_wrong_units(rock_model):

@@ -87,8 +87,9 @@ def classes_after(model, grasp, result, touch, rng):
 def test_suggested_touch_beats_random_touch_on_the_box(box_model):
     """Simulated: the suggested probe, made on the true pose and added to the contacts,
     leaves fewer pose classes more often than a random probe (measured on 193 ambiguous
-    grasps: 77 % vs 43 % resolved to one class)."""
-    cases = ambiguous_grasps(box_model, 30, seed=1)
+    grasps: 77 % vs 43 % resolved to one class). 60 grasps: with 30, rounding that reorders
+    exactly tied symmetric twins was enough to move the margin across 15 %."""
+    cases = ambiguous_grasps(box_model, 60, seed=1)
     fewer = {"suggested": 0, "random": 0}
     resolved = {"suggested": 0, "random": 0}
     for k, (g, r) in enumerate(cases):

@@ -79,7 +79,7 @@ def fit_poses(obj_normals, obj_offsets, points, finger_normals, *, cost="invaria
     min_eig = n * np.sin(angle_tol) ** 2
     R = wahba(obj_normals, -finger_normals)
     # Σ n nᵀ in the object frame: its eigenvectors are the (un)determined directions
-    lam, V = np.linalg.eigh(np.einsum("hni,hnj->hij", obj_normals, obj_normals))
+    lam, V = np.linalg.eigh(obj_normals.transpose(0, 2, 1) @ obj_normals)
     free_rotation = lam[:, 1] <= min_eig
     if centroids is not None and free_rotation.any():
         axis = V[free_rotation, :, 2]
@@ -88,7 +88,7 @@ def fit_poses(obj_normals, obj_offsets, points, finger_normals, *, cost="invaria
         R[free_rotation] = Rotation.from_rotvec(axis * turn[:, None]).as_matrix() @ R[free_rotation]
     world = R @ V  # columns: world eigenvectors
     if t0 is None:
-        t0 = points.mean(axis=0)[None] - np.einsum("hij,hj->hi", R, centroids.mean(axis=1))
+        t0 = points.mean(axis=0) - (R @ centroids.mean(axis=1)[..., None])[..., 0]
     t = np.empty((len(R), 3))
     _translations(R, world, lam, obj_normals, _c(obj_offsets),
                   _c(points), _c(finger_normals), _c(np.broadcast_to(t0, t.shape)),
@@ -143,11 +143,13 @@ def wahba(obj_vectors, world_vectors):
 
     obj_vectors a : (H, n, 3); world_vectors b : (n, 3)  ->  (H, 3, 3)
     """
-    B = np.einsum("ni,hnj->hij", world_vectors, obj_vectors)
-    U, _, Vt = np.linalg.svd(B)
-    flip = np.linalg.det(U) * np.linalg.det(Vt) < 0
-    U[flip, :, 2] *= -1.0
-    return U @ Vt
+    U, _, Vt = np.linalg.svd(world_vectors.T @ obj_vectors)  # B = Σ_i b_i a_iᵀ
+    R = U @ Vt
+    flip = np.linalg.det(R) < 0
+    if flip.any():
+        U[flip, :, 2] *= -1.0
+        R[flip] = U[flip] @ Vt[flip]
+    return R
 
 
 @numba.njit(cache=True)
