@@ -72,7 +72,7 @@ def cmd_localize(args):
     result = localize(model, contacts, position_noise=args.position_noise,
                       normal_noise_deg=args.normal_noise_deg, prior=prior, method=args.method,
                       solver=args.solver, top=args.top, robust=args.robust, max_outliers=args.max_outliers,
-                      samples=args.samples, seed=args.seed)
+                      samples=args.samples, seed=args.seed, finger_radius=args.finger_radius)
     data = result.to_dict()
     if args.output:
         io.write_json(args.output, data)
@@ -135,6 +135,8 @@ def build_parser():
     p.add_argument("--robust", choices=("huber", "cauchy", "none"), default="huber",
                    help="factor graph's robust kernel (with --solver factor-graph)")
     p.add_argument("--max-outliers", type=int, default=0, help="fingers that may be left unassigned")
+    p.add_argument("--finger-radius", type=float,
+                   help="drop hypotheses that put a contact where no fingertip of this radius fits")
     p.add_argument("--samples", type=int, default=0, help="posterior samples of the best pose (emcee)")
     p.add_argument("--seed", type=int, help="seed for --samples (repeatable runs)")
     p.add_argument("--top", type=int, help="keep the best K hypotheses")

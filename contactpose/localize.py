@@ -268,7 +268,7 @@ class Result:
 
 def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prior=None,
              method="fast", solver=None, top=None, model_error=0.0, max_outliers=0, robust="huber",
-             refine=DEFAULT_REFINE, samples=0, seed=None, sample_top=1):
+             refine=DEFAULT_REFINE, samples=0, seed=None, sample_top=1, finger_radius=None):
     """Find every admissible finger-to-facet assignment and the object pose behind each.
 
     model : ObjectModel; contacts : Contacts (world frame); position_noise : per-axis σ of
@@ -284,7 +284,10 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
     solver="factor-graph" hypotheses carry .covariance and .probability and are ranked by
     Laplace evidence. samples : draw this many posterior samples (emcee) of the pose of
     each of the best ``sample_top`` hypotheses, into .samples and .sample_covariance;
-    seed makes the sampling repeatable.
+    seed makes the sampling repeatable. finger_radius : drop the hypotheses that put a
+    contact where no finger of this radius fits (its outward normal ray of that length
+    re-enters the posed object: contactpose.freespace); underdetermined hypotheses are
+    kept, since their pose is one arbitrary member of a family.
     """
     method, solver = _check_options(method, solver, top, contacts, prior)
     if robust not in ROBUST:
@@ -302,6 +305,10 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
         sub, sub_timing = _search(model, contacts.permuted(keep), tolerance, prior, method, pose_solver)
         arrays = arrays.merged(sub.widened(keep, contacts.n, len(dropped) * OUTLIER_PENALTY))
         timing = {k: timing[k] + sub_timing[k] for k in timing}
+    if finger_radius is not None:
+        free_start = time.perf_counter()
+        arrays = _free_space(model, contacts, arrays, finger_radius)
+        timing["free_space"] = time.perf_counter() - free_start
     rescue = ""
     if solver == "factor-graph":
         refine_start = time.perf_counter()
@@ -361,6 +368,15 @@ def _search(model, contacts, tolerance, prior, method, solver):
     arrays = _rank(model, contacts, facets, fit, cost_paper, tolerance, method)
     clock.append(time.perf_counter())
     return arrays, dict(zip(("pairs", "tree", "pose", "rank"), np.diff(clock).tolist()))
+
+
+def _free_space(model, contacts, arrays, finger_radius):
+    """The hypotheses but those whose (determined) pose puts a contact where no finger of
+    ``finger_radius`` fits (issue 9, item 5)."""
+    from contactpose.freespace import free_space_violations
+
+    bad = free_space_violations(model, arrays.facets, arrays.poses, contacts, finger_radius)
+    return arrays.take(np.flatnonzero(~(bad & ~arrays.fit.underdetermined)))
 
 
 def _refine(model, contacts, arrays, tolerance, prior, robust, k):

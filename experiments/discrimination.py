@@ -17,7 +17,8 @@ adding to the one before:
 4. ``in_facet``   + the in-facet check: keep the hypotheses that some pose near their
                   closed form may fit within noise, triangles included
                   (``contactpose.infacet.within_noise``, a lower bound on the best χ²);
-5. ``free_space`` + the free-space check (``contactpose.freespace``, ray of one finger radius).
+5. ``free_space`` + the free-space check (``localize(..., finger_radius=r)``: the ray of one
+                  finger radius, on determined hypotheses).
 
 Stages 1–3 rank by the plane χ² (normal and point-to-plane residuals of the closed-form
 pose), which is all their constraints can tell; ``fit`` counts the hypotheses among the
@@ -222,11 +223,16 @@ def run_grasp(model, name, i, grasp, tolerance, args):
     row["in_facet_classes"] = len(result.classes)
     # stage 5: + free space
     start = time.perf_counter()
-    bad = free_space_violations(model, a.facets[fits], a.poses[fits], grasp.contacts, args.finger_radius)
-    free = fits[~bad]
+    kept = localize(model, grasp.contacts, finger_radius=args.finger_radius, **noise).hypotheses.arrays
+    free = fits[np.isin(_keys(a.facets[fits]), _keys(kept.facets))]
     row.update(stage_stats(model, grasp, "free_space", a.facets[free], truth, key, a.take(free)))
     row["free_space_ms"] = 1000 * (time.perf_counter() - start)
     return row, result
+
+
+def _keys(facets):
+    """(H, n) facet tuples -> (H,) one comparable key per tuple."""
+    return np.ascontiguousarray(facets).view(np.dtype((np.void, facets.dtype.itemsize * facets.shape[1]))).ravel()
 
 
 # ------------------------------------------------------------------ touches

@@ -195,3 +195,25 @@ def test_bad_input(channel):
         free_space_violations(channel, facets[None], pose, contacts, 0.01, fingertip="cone")
     empty = free_space_violations(channel, np.zeros((0, 6), int), np.zeros((0, 4, 4)), contacts, 0.01)
     assert empty.shape == (0,)
+
+
+def test_localize_drops_hypotheses_no_finger_can_make(channel):
+    """localize(..., finger_radius=r) keeps exactly the hypotheses that are underdetermined or
+    pass the ray check, and the true tuple among them, on grasps a wide finger can make."""
+    from contactpose.localize import localize
+
+    rng = np.random.default_rng(12)
+    noise = dict(position_noise=POSITION_NOISE, normal_noise_deg=NORMAL_NOISE_DEG)
+    dropped = 0
+    for _ in range(25):
+        g = simulate.grasp(channel, rng, n=4, noise="bounded", **noise)
+        if free_space_violations(channel, g.facets[None], g.pose[None], g.contacts, 2 * SLOT)[0]:
+            continue  # a true contact no wide finger could make
+        full = localize(channel, g.contacts, **noise).hypotheses.arrays
+        kept = localize(channel, g.contacts, finger_radius=2 * SLOT, **noise).hypotheses.arrays
+        bad = free_space_violations(channel, full.facets, full.poses, g.contacts, 2 * SLOT) & ~full.fit.underdetermined
+        assert sorted(map(tuple, kept.facets)) == sorted(map(tuple, full.facets[~bad]))
+        labels = channel.patches.labels if channel.patch_table is not None else np.arange(channel.num_facets)
+        assert (labels[kept.facets] == labels[g.facets]).all(axis=1).any()
+        dropped += bad.sum()
+    assert dropped > 0

@@ -115,3 +115,16 @@ def test_enough_stops_early_without_changing_the_first_fits(rock_model):
             assert part[:k].tolist() == full[:k].tolist()
             compared += len(full) > k
     assert compared > 3
+
+
+def test_patch_members_off_the_chosen_plane_still_pass(carton_model):
+    """On a model with patches the closed form fits the member facets the search picked;
+    another member, up to the patch tolerance off that plane, can fit the contact better, so
+    a plane χ² above the threshold is no reason to reject. Grasps 86 and 274 of this stream
+    were lost that way."""
+    model = carton_model
+    labels = model.patches.labels
+    for g, r in located(model, 5, 300):
+        a = r.hypotheses.arrays
+        true = np.flatnonzero((labels[a.facets] == labels[g.facets]).all(axis=1))
+        assert within_noise(model, g.contacts, a, r.tolerance, fit_threshold(4))[true].any()
