@@ -46,6 +46,8 @@ RELINEARISE_BAND = 1.5
 RELINEARISE = 3
 #: Hypotheses checked at a time by within_noise(..., enough=...).
 CHUNK = 64
+#: Relinearisations of polished_poses.
+POLISH_ROUNDS = 2
 
 
 def within_noise(model, contacts, arrays, tolerance, threshold, enough=None):
@@ -80,29 +82,51 @@ def lowest_chi2_bound(model, contacts, arrays, rows, tolerance, threshold=None, 
     (to first order). Bounds within RELINEARISE_BAND of ``threshold`` (all, when None) are
     taken again about the pose the alternating minimisation reached, which shrinks their
     first-order error. rows : (K,) int  ->  (K,)"""
-    facets = arrays.facets[rows]
-    used = (facets >= 0).astype(float)                      # unassigned fingers (outliers) drop out
-    f = np.maximum(facets, 0)
-    R, t = arrays.fit.R[rows], arrays.fit.t[rows]
-    regions, indptr, members = _regions(model, f)
-    planes = model.planes.normals[f], model.planes.offsets[f], regions
-    weights = used / tolerance.normal_noise**2, used / tolerance.position_noise**2
-    # the tangent bound needs a convex region: one triangle, and a pose with no free direction
-    determined = ~arrays.fit.underdetermined[rows] & (np.diff(indptr)[regions] == 1).all(axis=1)
-    free = arrays.fit.underdetermined[rows]
-    shape = (model.triangles, model.centroids, model.facet_radii, indptr, members,
-             np.inf if threshold is None else float(threshold))
+    R, t, planes, weights, determined, free, shape = _problem(model, contacts, arrays, rows, tolerance, threshold)
     bound, xi = _bounds(R, t, *planes, contacts, *weights, determined, free, shape, steps)
     for _ in range(RELINEARISE):
         again = (np.ones(len(bound), dtype=bool) if threshold is None else
                  (bound > threshold) & ((bound <= RELINEARISE_BAND * threshold) | ~determined))
         if not again.any():
             break
-        R[again] = R[again] @ Rotation.from_rotvec(xi[again, :3]).as_matrix()
-        t[again] += np.einsum("kij,kj->ki", R[again], xi[again, 3:])
+        R[again], t[again] = _moved(R[again], t[again], xi[again])
         bound[again], xi[again] = _bounds(R[again], t[again], *(a[again] for a in planes), contacts,
                                           *(w[again] for w in weights), determined[again], free[again], shape, steps)
     return bound
+
+
+def polished_poses(model, contacts, arrays, rows, tolerance, threshold, rounds=POLISH_ROUNDS):
+    """Poses of hypotheses ``rows`` moved from their closed form toward the least full χ²
+    (triangles included): where the alternating minimisation above leads, taken again about
+    each pose it reaches, ``rounds`` times. Contacts move over the facets a pose with plane
+    χ² within ``threshold`` can reach. rows : (K,) int  ->  R (K, 3, 3), t (K, 3)"""
+    R, t, planes, weights, determined, free, shape = _problem(model, contacts, arrays, rows, tolerance, threshold)
+    for _ in range(rounds):
+        R, t = _moved(R, t, _bounds(R, t, *planes, contacts, *weights, determined, free, shape, STEPS)[1])
+    return R, t
+
+
+def _problem(model, contacts, arrays, rows, tolerance, threshold):
+    """The kernel's inputs for hypotheses ``rows``: (R, t, planes, weights, determined,
+    free, shape) as _bounds takes them; R and t are copies."""
+    facets = arrays.facets[rows]
+    used = (facets >= 0).astype(float)                      # unassigned fingers (outliers) drop out
+    f = np.maximum(facets, 0)
+    regions, indptr, members = _regions(model, f)
+    planes = model.planes.normals[f], model.planes.offsets[f], regions
+    weights = used / tolerance.normal_noise**2, used / tolerance.position_noise**2
+    # the tangent bound needs a convex region: one triangle, and a pose with no free direction
+    free = arrays.fit.underdetermined[rows]
+    determined = ~free & (np.diff(indptr)[regions] == 1).all(axis=1)
+    shape = (model.triangles, model.centroids, model.facet_radii, indptr, members,
+             np.inf if threshold is None else float(threshold))
+    return arrays.fit.R[rows], arrays.fit.t[rows], planes, weights, determined, free, shape
+
+
+def _moved(R, t, xi):
+    """The poses (R, t) moved by the right perturbation ξ = (ω, v): R Exp(ω), t + R v."""
+    R = R @ Rotation.from_rotvec(xi[:, :3]).as_matrix()
+    return R, t + np.einsum("kij,kj->ki", R, xi[:, 3:])
 
 
 def _regions(model, facets):

@@ -21,7 +21,7 @@ from contactpose import residuals as res
 from contactpose.contacts import Contacts, Tolerance, pair_conditions
 from contactpose.errors import ContactPoseError, PriorError, ResourceError
 from contactpose.hypotheses import TripleTest, admissible_pairs, join_tuples, join_tuples_paper
-from contactpose.infacet import within_noise
+from contactpose.infacet import polished_poses, within_noise
 from contactpose.patches import nearest_members
 from contactpose.metrics import SAME_CLASS_ADDS_FRAC, adds_many, rms_displacement
 from contactpose.solvers.closed_form import PoseFit, fit_poses
@@ -39,6 +39,10 @@ FIT_CONFIDENCE = 0.9973
 AMBIGUOUS_PROBABILITY = 0.05
 #: At most this many well-fitting hypotheses are grouped into pose classes.
 MAX_CLASS_HYPOTHESES = 256
+#: The default method moves the poses of at most this many hypotheses toward the least
+#: full χ² (localize._polish), those whose plane χ² is at least POLISH_GAIN below the best.
+POLISH = 256
+POLISH_GAIN = 0.5
 #: χ² charged per unassigned finger (max_outliers): the FIT_CONFIDENCE quantile of one
 #: contact's 3 dof, so dropping a finger never beats assigning it within noise.
 OUTLIER_PENALTY = 14.16
@@ -367,7 +371,11 @@ def _search(model, contacts, tolerance, prior, method, solver):
     clock.append(time.perf_counter())
     arrays = _rank(model, contacts, facets, fit, cost_paper, tolerance, method)
     clock.append(time.perf_counter())
-    return arrays, dict(zip(("pairs", "tree", "pose", "rank"), np.diff(clock).tolist()))
+    timing = dict(zip(("pairs", "tree", "pose", "rank"), np.diff(clock).tolist()))
+    if method == "fast":
+        arrays = _polish(model, contacts, arrays, tolerance)
+        timing["pose"] += time.perf_counter() - clock[-1]
+    return arrays, timing
 
 
 def _free_space(model, contacts, arrays, finger_radius):
@@ -497,6 +505,40 @@ def _rank(model, contacts, facets, fit, cost_paper, tolerance, method, order=Tru
     if not order or np.all(cost[1:] >= cost[:-1]):
         return arrays
     return arrays.take(np.argsort(cost, kind="stable"))
+
+
+def _polish(model, contacts, arrays, tolerance):
+    """The ranked hypotheses with the poses of those that could beat the best moved toward
+    the least full χ² (infacet.polished_poses), where that lowers it. The closed form fits
+    the planes only, the ranking cost includes the triangles: a hypothesis whose plane χ²
+    is at least POLISH_GAIN below the best full χ² (the best itself, when a contact lies
+    outside its triangle) is moved, up to POLISH of them, best plane fit first. With
+    patches, each moved contact gets the member facet nearest to it again."""
+    if not len(arrays.cost):
+        return arrays
+    lateral = arrays.residuals[..., 4]
+    plane = arrays.chi2 - np.sum(lateral**2, axis=1) / tolerance.position_noise**2
+    rows = np.flatnonzero(plane <= arrays.chi2.min() - POLISH_GAIN)
+    rows = rows[np.argsort(plane[rows], kind="stable")[:POLISH]]
+    if not len(rows):
+        return arrays
+    R, t = polished_poses(model, contacts, arrays, rows, tolerance, fit_threshold(contacts.n))
+    facets = arrays.facets[rows]
+    if model.patch_table is not None:
+        labels = np.ascontiguousarray(model.patches.labels[facets])
+        facets = nearest_members(model.patches, model.triangles, labels, res.to_object_frame(R, t, contacts.points))
+    fit = arrays.fit.take(rows)
+    fit.R, fit.t = R, t
+    moved = _rank(model, contacts, facets, fit, None, tolerance, "fast", order=False)
+    better = moved.chi2 < arrays.chi2[rows]
+    if not better.any():
+        return arrays
+    arrays = arrays.take(np.arange(len(arrays.cost)))      # a copy to update
+    keep, src = rows[better], np.flatnonzero(better)
+    for name in ("facets", "poses", "cost", "chi2", "residuals"):
+        getattr(arrays, name)[keep] = getattr(moved, name)[src]
+    arrays.fit.R[keep], arrays.fit.t[keep] = R[src], t[src]
+    return arrays.take(np.argsort(arrays.cost, kind="stable"))
 
 
 @lru_cache(maxsize=64)
