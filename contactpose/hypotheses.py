@@ -14,6 +14,8 @@ Two joins give the same set:
 
 from __future__ import annotations
 
+from itertools import accumulate
+
 import numba
 import numpy as np
 
@@ -83,8 +85,17 @@ def admissible_pairs(model, conditions, tolerance, bounds="exact", direction=Tru
     """
     table, m = (model.patch_table, model.patches.count) if patches else (model.facet_table(), model.num_facets)
     first, second, cut = table.query_all(conditions, tolerance, bounds, direction)
-    return {pair: PairSet(first[cut[e]:cut[e + 1]], second[cut[e]:cut[e + 1]], m)
-            for e, pair in enumerate(conditions.pairs)}
+    S = PairSets({pair: PairSet(first[cut[e]:cut[e + 1]], second[cut[e]:cut[e + 1]], m)
+                  for e, pair in enumerate(conditions.pairs)})
+    S.keys_and_cut = (first * m + second, cut)  # all pairs' keys k·m + l, in sorted pair order
+    return S
+
+
+class PairSets(dict):
+    """S_ij as a dict (i, j) -> PairSet, plus ``keys_and_cut``: the keys k·m + l of all finger
+    pairs concatenated in sorted pair order, and (P + 1,) offsets delimiting them."""
+
+    keys_and_cut = None
 
 
 def _pair(S, a, b):
@@ -142,7 +153,10 @@ def join_tuples(S, n, triple=None):
     dense = m * m <= BITMAP_MAX_CELLS
     # membership keys k·m + l per finger pair (sorted unless a bitmap answers), and for each
     # level the sorted keys of its expansion pair, keyed by the parent finger's facet first
-    member = _flat([S[p].sorted_keys() if not dense else S[p].first * m + S[p].second for p in pairs])
+    if dense:
+        member = getattr(S, "keys_and_cut", None) or _flat([S[p].first * m + S[p].second for p in pairs])
+    else:
+        member = _flat([S[p].sorted_keys() for p in pairs])
     expand = _flat([S[(min(g, f), max(g, f))].sorted_keys(reverse=g > f)
                     for g, f in zip(order[parent[2:]], order[2:])])
     if triple is None:
@@ -158,7 +172,7 @@ def join_tuples(S, n, triple=None):
 def _flat(arrays):
     """Arrays -> (concatenation, (len + 1,) segment offsets)."""
     cut = np.zeros(len(arrays) + 1, dtype=np.int64)
-    np.cumsum([len(a) for a in arrays], out=cut[1:])
+    cut[1:] = list(accumulate(len(a) for a in arrays))
     return np.concatenate(arrays + [np.empty(0, np.int64)]).astype(np.int64), cut
 
 
