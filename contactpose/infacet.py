@@ -189,11 +189,11 @@ def _bound_kernel(R, t, normals, offsets, points, finger_normals, wn, wx, region
             _add_skew(H, pi, wx[k, i])
         for a in range(6):
             g[a] += g_n[a]
-        trace = 0.0
-        for a in range(6):
-            trace += H[a, a]
-        for a in range(6):
-            H[a, a] += 1e-12 * trace
+        # regularise each block by its own trace, so that the solve does not depend on units
+        rot, trans = H[0, 0] + H[1, 1] + H[2, 2], H[3, 3] + H[4, 4] + H[5, 5]
+        for a in range(3):
+            H[a, a] += 1e-12 * rot
+            H[a + 3, a + 3] += 1e-12 * trans
         _cholesky(H, chol)
         many = np.any(indptr[regions[k] + 1] - indptr[regions[k]] > 1)
         reach = _reach(A, g, chi2_0, p, threshold) if many and not free[k] else np.full(n, np.inf)
