@@ -125,3 +125,18 @@ def test_scaling_series_and_icp_improve_on_a_close_prior():
     for r in (icp, ss):
         assert metrics.translation_error(r.pose, g.pose) < 0.004
         assert r.cost < baselines.contact_cost(model, surface, g.contacts, start[None], **noise)[0]
+
+
+def test_outlier_fingers_quick_writes_prefixed_files_and_names_the_bad_finger(tmp_path):
+    """experiments/outlier_fingers.py --quick: prefixed files beside the discrimination
+    results (none of that part's names), CSV identical across runs, the planted finger found."""
+    outliers = run_all.load("outlier_fingers")
+    for out in ("a", "b"):
+        assert outliers.main(["--quick", "--fresh", "--workers", "0", "--out", str(tmp_path / out)]) == 0
+    a, b = tmp_path / "a" / "discrimination", tmp_path / "b" / "discrimination"
+    assert (a / "outliers_grasps.csv").read_bytes() == (b / "outliers_grasps.csv").read_bytes()
+    assert sorted(p.name for p in a.iterdir() if p.is_file()) == sorted(
+        ["outliers_grasps.csv", "outliers_timings.csv", "outliers_summary.csv", "outliers_config.json",
+         "outliers_run.json", "outliers.png", "outliers.pdf"])
+    c = sweep.read_columns(a / "outliers_grasps.csv")
+    assert np.all(c["true_found"] == 1) and np.mean(c["named"]) >= 0.5
