@@ -64,9 +64,11 @@ def within_noise(model, contacts, arrays, tolerance, threshold, enough=None):
     ok = chi2 <= threshold
     # the closed form minimises the plane part for the chosen facets only: with patches,
     # another member (up to the patch tolerance off-plane) may fit better, so no pre-test
-    regions, indptr, _ = _regions(model, np.maximum(arrays.facets, 0))
-    single = (np.diff(indptr)[regions] == 1).all(axis=1)
-    check = np.flatnonzero(~ok & ((plane <= threshold) | ~single))
+    if model.patch_table is None:
+        check = np.flatnonzero(~ok & (plane <= threshold))
+    else:
+        several = np.diff(model.patches.indptr)[model.patches.labels[np.maximum(arrays.facets, 0)]] > 1
+        check = np.flatnonzero(~ok & ((plane <= threshold) | several.any(axis=1)))
     chunk = max(len(check), 1) if enough is None else CHUNK
     for lo in range(0, len(check), chunk):
         if enough is not None and np.count_nonzero(ok[:check[lo]]) >= enough:

@@ -514,9 +514,9 @@ def _polish(model, contacts, arrays, tolerance):
     is at least POLISH_GAIN below the best full χ² (the best itself, when a contact lies
     outside its triangle) is moved, up to POLISH of them, best plane fit first. With
     patches, each moved contact gets the member facet nearest to it again."""
-    if not len(arrays.cost):
-        return arrays
     lateral = arrays.residuals[..., 4]
+    if not lateral.any():  # every contact inside its triangle: the plane χ² is the full χ²
+        return arrays
     plane = arrays.chi2 - np.sum(lateral**2, axis=1) / tolerance.position_noise**2
     rows = np.flatnonzero(plane <= arrays.chi2.min() - POLISH_GAIN)
     rows = rows[np.argsort(plane[rows], kind="stable")[:POLISH]]

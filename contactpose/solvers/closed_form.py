@@ -88,10 +88,10 @@ def fit_poses(obj_normals, obj_offsets, points, finger_normals, *, cost="invaria
         R[free_rotation] = Rotation.from_rotvec(axis * turn[:, None]).as_matrix() @ R[free_rotation]
     world = R @ V  # columns: world eigenvectors
     if t0 is None:
-        t0 = points.mean(axis=0) - (R @ centroids.mean(axis=1)[..., None])[..., 0]
+        t0 = points.sum(axis=0) / n - (R @ centroids.sum(axis=1)[..., None])[..., 0] / n
     t = np.empty((len(R), 3))
     _translations(R, world, lam, obj_normals, _c(obj_offsets),
-                  _c(points), _c(finger_normals), _c(np.broadcast_to(t0, t.shape)),
+                  _c(points), _c(finger_normals), _c(t0 if np.shape(t0) == t.shape else np.broadcast_to(t0, t.shape)),
                   cost == "paper", min_eig, t)
     rows = world.transpose(0, 2, 1)
     return PoseFit(R, t, rows, lam <= min_eig, rows[:, 2], free_rotation)
