@@ -87,6 +87,22 @@ def _cross(u, v):
 
 
 @njit(cache=True)
+def _rt_apply(R, x):
+    """Rᵀ x for a (3, 3) array R and a 3-tuple x."""
+    return (R[0, 0] * x[0] + R[1, 0] * x[1] + R[2, 0] * x[2],
+            R[0, 1] * x[0] + R[1, 1] * x[1] + R[2, 1] * x[2],
+            R[0, 2] * x[0] + R[1, 2] * x[1] + R[2, 2] * x[2])
+
+
+@njit(cache=True)
+def _r_apply(R, x):
+    """R x for a (3, 3) array R and a 3-tuple x."""
+    return (R[0, 0] * x[0] + R[0, 1] * x[1] + R[0, 2] * x[2],
+            R[1, 0] * x[0] + R[1, 1] * x[1] + R[1, 2] * x[2],
+            R[2, 0] * x[0] + R[2, 1] * x[1] + R[2, 2] * x[2])
+
+
+@njit(cache=True)
 def _d2(u, v):
     """Squared distance between two points."""
     w = _sub(u, v)

@@ -7,8 +7,8 @@ hypotheses h = (γ_1, ..., γ_n), tuples that satisfy every finger pair.
 Two joins give the same set:
 
 * :func:`join_tuples`, the default: level by level over all nodes in one compiled
-  pass, starting from the most selective finger pair; membership by binary search
-  on sorted pair keys.
+  pass, starting from the most selective finger pair; each node expands from the placed
+  finger with the fewest candidates, membership by binary search in sorted adjacency rows.
 * :func:`join_tuples_paper`: the paper's tree, node by node in finger order.
 """
 
@@ -87,15 +87,15 @@ def admissible_pairs(model, conditions, tolerance, bounds="exact", direction=Tru
     first, second, cut = table.query_all(conditions, tolerance, bounds, direction)
     S = PairSets({pair: PairSet(first[cut[e]:cut[e + 1]], second[cut[e]:cut[e + 1]], m)
                   for e, pair in enumerate(conditions.pairs)})
-    S.keys_and_cut = (first * m + second, cut)  # all pairs' keys k·m + l, in sorted pair order
+    S.flat = (first, second, cut)  # conditions.pairs is in sorted order
     return S
 
 
 class PairSets(dict):
-    """S_ij as a dict (i, j) -> PairSet, plus ``keys_and_cut``: the keys k·m + l of all finger
-    pairs concatenated in sorted pair order, and (P + 1,) offsets delimiting them."""
+    """S_ij as a dict (i, j) -> PairSet, plus ``flat``: (first, second, (P + 1,) offsets),
+    every finger pair's facet pairs concatenated in sorted pair order."""
 
-    keys_and_cut = None
+    flat = None
 
 
 def _pair(S, a, b):
@@ -141,39 +141,33 @@ def join_tuples(S, n, triple=None):
     """All n-tuples admissible for every finger pair (the tree T), level by level in one
     compiled pass over all nodes, starting from the most selective finger pair.
 
+    Each node places the next finger from the placed finger that admits the fewest facets
+    for it, then tests the others by binary search in their sorted adjacency rows.
     S : dict (i, j) -> PairSet for i < j; triple : optional TripleTest applied to every
-    triple of fingers as soon as it is placed. Returns (H, n) int64 in finger order.
+    triple of fingers as soon as it is placed. Returns (H, n) int64 in finger order, each
+    node's children in ascending facet order.
     """
     pairs = sorted(S)
     pair_of = np.full((n, n), -1, dtype=np.int64)
     for e, (i, j) in enumerate(pairs):
         pair_of[i, j] = pair_of[j, i] = e
-    order, parent = placement_order(S, n)
+    order, _ = placement_order(S, n)
     m = S[pairs[0]].m
-    dense = m * m <= BITMAP_MAX_CELLS
-    # membership keys k·m + l per finger pair (sorted unless a bitmap answers), and for each
-    # level the sorted keys of its expansion pair, keyed by the parent finger's facet first
-    if dense:
-        member = getattr(S, "keys_and_cut", None) or _flat([S[p].first * m + S[p].second for p in pairs])
-    else:
-        member = _flat([S[p].sorted_keys() for p in pairs])
-    expand = _flat([S[(min(g, f), max(g, f))].sorted_keys(reverse=g > f)
-                    for g, f in zip(order[parent[2:]], order[2:])])
+    first, second, cut = getattr(S, "flat", None) or _flat_pairs(S, pairs)
     if triple is None:
         normals, measured, tol = np.zeros((1, 3)), np.zeros((n, 3)), np.inf
     else:
         normals, measured, tol = triple.facet_normals, triple.measured, triple.tol
-    start = S[tuple(order[:2])]
-    return _join(start.first, start.second, *member, *expand, m, dense, order, parent, pair_of,
-                 np.ascontiguousarray(normals, dtype=np.float64),
+    return _join(first, second, cut, m, order, pair_of, np.ascontiguousarray(normals, dtype=np.float64),
                  np.ascontiguousarray(measured, dtype=np.float64), float(tol))
 
 
-def _flat(arrays):
-    """Arrays -> (concatenation, (len + 1,) segment offsets)."""
-    cut = np.zeros(len(arrays) + 1, dtype=np.int64)
-    cut[1:] = list(accumulate(len(a) for a in arrays))
-    return np.concatenate(arrays + [np.empty(0, np.int64)]).astype(np.int64), cut
+def _flat_pairs(S, pairs):
+    """(first, second, (P + 1,) offsets): the facet pairs of ``pairs`` concatenated."""
+    cut = np.zeros(len(pairs) + 1, dtype=np.int64)
+    cut[1:] = list(accumulate(len(S[p]) for p in pairs))
+    join = lambda arrays: np.concatenate(arrays + [np.empty(0, np.int64)]).astype(np.int64)
+    return join([S[p].first for p in pairs]), join([S[p].second for p in pairs]), cut
 
 
 def placement_order(S, n):
@@ -195,17 +189,23 @@ def placement_order(S, n):
 
 
 @numba.njit(cache=True)
-def _join(first, second, keys, cut, expand, ecut, m, dense, order, parent, pair_of, normals, measured, tol):
-    """The tree T. first, second : the start pair's facets; keys, cut : membership keys per
-    finger pair; expand, ecut : sorted expansion keys per level (see join_tuples)."""
+def _join(first, second, cut, m, order, pair_of, normals, measured, tol):
+    """The tree T. first, second, cut : every finger pair's admissible facet pairs,
+    concatenated in pair order (see join_tuples)."""
     n = len(order)
-    nodes = np.empty((len(first), n), dtype=np.int64)
-    nodes[:, 0], nodes[:, 1] = first, second
+    e0 = pair_of[order[0], order[1]]
+    start_a, start_b = _directed(first, second, cut, e0, order[0] < order[1])
+    nodes = np.empty((len(start_a), n), dtype=np.int64)
+    nodes[:, 0], nodes[:, 1] = start_a, start_b
     count = len(nodes)
-    bits = _bitmaps(keys, cut, m * m if dense else 0, _tested_pairs(order, pair_of, len(cut) - 1))
     for level in range(2, n):
-        nodes, count = _grow(nodes, count, level, expand[ecut[level - 2]:ecut[level - 1]], keys, cut, bits, m,
-                             order, parent, pair_of, normals, measured, tol)
+        indptr = np.empty((level, m + 1), dtype=np.int64)
+        targets = np.empty((level, cut[-1]), dtype=np.int64)
+        for b in range(level):
+            e = pair_of[order[b], order[level]]
+            src, dst = _directed(first, second, cut, e, order[b] < order[level])
+            _adjacency(src, dst, m, indptr[b], targets[b])
+        nodes, count = _grow(nodes, count, level, indptr, targets, order, normals, measured, tol)
     out = np.empty((count, n), dtype=np.int64)
     for c in range(n):
         out[:, order[c]] = nodes[:count, c]
@@ -213,44 +213,54 @@ def _join(first, second, keys, cut, expand, ecut, m, dense, order, parent, pair_
 
 
 @numba.njit(cache=True)
-def _tested_pairs(order, pair_of, num_pairs):
-    """(P,) bool: the finger pairs that membership tests ask (not the start pair, nor a
-    pair used only to expand)."""
-    tested = np.zeros(num_pairs, dtype=np.bool_)
-    for level in range(2, len(order)):
-        for b in range(level):
-            if b != -1 and pair_of[order[b], order[level]] >= 0:
-                tested[pair_of[order[b], order[level]]] = True
-    return tested
+def _directed(first, second, cut, e, forward):
+    """Finger pair e's facet pairs as (from, to): (first, second), or reversed."""
+    a, b = first[cut[e]:cut[e + 1]], second[cut[e]:cut[e + 1]]
+    return (a, b) if forward else (b, a)
 
 
 @numba.njit(cache=True)
-def _bitmaps(keys, cut, cells, tested):
-    """A packed bitmap (8 keys a byte) of each tested finger pair's keys; cells = m², or 0
-    for no bitmaps (sorted keys answer then)."""
-    bits = np.zeros((len(cut) - 1 if cells else 0, (cells + 7) // 8), dtype=np.uint8)
-    for e in range(bits.shape[0]):
-        if tested[e]:
-            for q in range(cut[e], cut[e + 1]):
-                bits[e, keys[q] >> 3] |= np.uint8(1 << (keys[q] & 7))
-    return bits
+def _adjacency(src, dst, m, indptr, targets):
+    """CSR adjacency src -> dst into indptr (m + 1,) and targets (first len(src) entries),
+    each row in ascending order: counting sort by dst, then a stable one by src."""
+    s = len(src)
+    by_dst = np.empty(s, dtype=np.int64)
+    pos = np.zeros(m + 1, dtype=np.int64)
+    for q in range(s):
+        pos[dst[q] + 1] += 1
+    for f in range(m):
+        pos[f + 1] += pos[f]
+    for q in range(s):
+        by_dst[pos[dst[q]]] = q
+        pos[dst[q]] += 1
+    indptr[:] = 0
+    for q in range(s):
+        indptr[src[q] + 1] += 1
+    for f in range(m):
+        indptr[f + 1] += indptr[f]
+    pos[:m] = indptr[:m]
+    for q in by_dst:
+        targets[pos[src[q]]] = dst[q]
+        pos[src[q]] += 1
 
 
 @numba.njit(cache=True)
-def _grow(nodes, count, level, expand, keys, cut, bits, m, order, parent, pair_of, normals, measured, tol):
-    """Place finger order[level] under every node: each facet its parent finger admits
-    (``expand``: parent facet · m + new facet, sorted), kept if every other placed finger
-    admits it too and every new triple passes."""
-    a = parent[level]
+def _grow(nodes, count, level, indptr, targets, order, normals, measured, tol):
+    """Place finger order[level] under every node: each facet that the placed finger with
+    the fewest candidates admits, kept if every other placed finger admits it too (binary
+    search in its sorted row) and every new triple passes."""
     want = _measured_triples(measured, order, level)
     out = np.empty((max(count, 16), nodes.shape[1]), dtype=np.int64)
     k = 0
     for r in range(count):
-        lo = np.searchsorted(expand, nodes[r, a] * m)
-        hi = np.searchsorted(expand, (nodes[r, a] + 1) * m)
-        for q in range(lo, hi):
-            facet = expand[q] % m
-            if not _admitted(nodes[r], facet, level, a, keys, cut, bits, m, order, pair_of):
+        a, fewest = 0, np.iinfo(np.int64).max
+        for b in range(level):
+            size = indptr[b, nodes[r, b] + 1] - indptr[b, nodes[r, b]]
+            if size < fewest:
+                a, fewest = b, size
+        for q in range(indptr[a, nodes[r, a]], indptr[a, nodes[r, a] + 1]):
+            facet = targets[a, q]
+            if not _admitted(nodes[r], facet, level, a, indptr, targets):
                 continue
             if tol < np.inf and not _triples_pass(normals, nodes[r], facet, level, want, tol):
                 continue
@@ -263,23 +273,15 @@ def _grow(nodes, count, level, expand, keys, cut, bits, m, order, parent, pair_o
 
 
 @numba.njit(cache=True)
-def _admitted(node, facet, level, skip, keys, cut, bits, m, order, pair_of):
-    """Whether every placed finger but ``skip`` admits finger order[level] on ``facet``."""
-    f = order[level]
+def _admitted(node, facet, level, skip, indptr, targets):
+    """Whether every placed finger but ``skip`` admits the new finger on ``facet``."""
     for b in range(level):
         if b == skip:
             continue
-        g = order[b]
-        e = pair_of[g, f]
-        key = node[b] * m + facet if g < f else facet * m + node[b]
-        if bits.shape[0]:
-            if not (bits[e, key >> 3] >> (key & 7)) & 1:
-                return False
-        else:
-            seg = keys[cut[e]:cut[e + 1]]
-            pos = np.searchsorted(seg, key)
-            if pos == len(seg) or seg[pos] != key:
-                return False
+        lo, hi = indptr[b, node[b]], indptr[b, node[b] + 1]
+        pos = lo + np.searchsorted(targets[b, lo:hi], facet)
+        if pos == hi or targets[b, pos] != facet:
+            return False
     return True
 
 

@@ -35,7 +35,8 @@ import numba
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from contactpose.geometry import _add, _axpy, _closest_on_triangle, _cross, _d2, _dot, _sub, _t  # 3-tuple kernels
+from contactpose.geometry import (_add, _axpy, _closest_on_triangle, _cross, _d2, _dot, _r_apply,  # 3-tuple kernels
+                                 _rt_apply, _sub, _t)
 
 #: Alternating-minimisation steps before the bound is taken (it is valid after any number).
 STEPS = 6
@@ -224,22 +225,6 @@ def _bound_kernel(R, t, normals, offsets, points, finger_normals, wn, wx, region
         else:
             bound[k] = reached
         xi_out[k] = xi
-
-
-@numba.njit(cache=True)
-def _rt_apply(R, x):
-    """Rᵀ x for a (3, 3) array R and a 3-tuple x."""
-    return (R[0, 0] * x[0] + R[1, 0] * x[1] + R[2, 0] * x[2],
-            R[0, 1] * x[0] + R[1, 1] * x[1] + R[2, 1] * x[2],
-            R[0, 2] * x[0] + R[1, 2] * x[1] + R[2, 2] * x[2])
-
-
-@numba.njit(cache=True)
-def _r_apply(R, x):
-    """R x for a (3, 3) array R and a 3-tuple x."""
-    return (R[0, 0] * x[0] + R[0, 1] * x[1] + R[0, 2] * x[2],
-            R[1, 0] * x[0] + R[1, 1] * x[1] + R[1, 2] * x[2],
-            R[2, 0] * x[0] + R[2, 1] * x[1] + R[2, 2] * x[2])
 
 
 @numba.njit(cache=True)

@@ -24,7 +24,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from contactpose.geometry import point_triangle_dist2, point_triangle_distance
+from contactpose.geometry import (_add, _dot, _point_triangle_d2, _r_apply, _rt_apply, _sub, _t,  # 3-tuple kernels
+                                 point_triangle_distance)
 
 
 def to_object_frame(R, t, points):
@@ -53,11 +54,13 @@ def contact_residuals(R, t, obj_normals, obj_offsets, triangles, points, finger_
 def _residuals(R, t, normals, offsets, triangles, points, finger_normals, r_n, r_o, r_l):
     for h in range(R.shape[0]):
         for i in range(points.shape[0]):
-            p = R[h].T @ (points[i] - t[h])  # the contact in the object frame
-            r_n[h, i] = R[h] @ normals[h, i] + finger_normals[i]
-            r_o[h, i] = normals[h, i] @ p + offsets[h, i]
+            p = _rt_apply(R[h], _sub(_t(points[i]), _t(t[h])))  # the contact in the object frame
+            nrm = _t(normals[h, i])
+            rn = _add(_r_apply(R[h], nrm), _t(finger_normals[i]))
+            r_n[h, i, 0], r_n[h, i, 1], r_n[h, i, 2] = rn
+            r_o[h, i] = _dot(nrm, p) + offsets[h, i]
             tri = triangles[h, i]
-            dist2 = point_triangle_dist2(p, tri[0], tri[1], tri[2])
+            dist2 = _point_triangle_d2(p, _t(tri[0]), _t(tri[1]), _t(tri[2]))
             r_l[h, i] = np.sqrt(max(dist2 - r_o[h, i] ** 2, 0.0))
 
 
