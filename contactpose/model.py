@@ -22,8 +22,9 @@ import numpy as np
 import trimesh
 
 from contactpose import tol
-from contactpose.errors import ContactPoseError, MeshError, ModelFileError
+from contactpose.errors import ContactPoseError, MeshError, ModelFileError, ResourceError
 from contactpose.features import NearPairs, PairFeatures, pair_features
+from contactpose.npyheaders import check_room, member_sizes
 from contactpose.patches import PatchPairs, Patches, find_patches
 from contactpose.stored import STORED_MODEL, check_arrays
 from contactpose.table import DEFAULT_BINS, STORED_BYTES_PER_PAIR, PairTable, check_bins, check_memory
@@ -377,7 +378,7 @@ class ObjectModel:
         data = _read_npz(path)
         _check_version(path, data)
         stored = data.pop("content_hash", None)
-        if stored is None or stored.shape != () or str(stored) != content_hash(data):
+        if stored is None or np.shape(stored) != () or str(stored) != content_hash(data):
             raise ModelFileError(f"model file {path!r} is corrupt: its arrays do not match its content hash")
         try:
             model = cls._from_arrays(data)
@@ -576,25 +577,42 @@ MMAP_MIN_BYTES = 256 * 2**20
 
 
 def _read_npz(path):
-    """Every array of an .npz, turning every failure into ModelFileError. Large files
-    are memory-mapped (their members are stored uncompressed by ``save``)."""
-    if os.path.isfile(path) and os.path.getsize(path) >= MMAP_MIN_BYTES:
+    """Every array of an .npz, turning every failure into ModelFileError (ResourceError when
+    memory runs short). Each member's header is checked against its size first. Large
+    files are memory-mapped (their members are stored uncompressed by ``save``)."""
+    if not os.path.isfile(path):
+        raise ModelFileError(f"model file {path!r} does not exist")
+    try:
+        sizes = member_sizes(path)
+    except Exception as exc:  # any failure to decode the headers means a damaged or foreign file
+        raise ModelFileError(_unreadable(path, exc)) from None
+    if os.path.getsize(path) >= MMAP_MIN_BYTES:
         try:
             return _mmap_npz(path)
         except MemoryError:
-            raise
-        except Exception as exc:  # any damage or foreign layout: np.load below says what is wrong
+            raise _out_of_memory(path) from None
+        except Exception as exc:  # a foreign layout (e.g. compressed): np.load below reads it or says why
             log.debug("cannot memory-map %s (%s: %s); reading it instead", path, type(exc).__name__, exc)
-    if not os.path.isfile(path):
-        raise ModelFileError(f"model file {path!r} does not exist")
+    check_room(path, sum(sizes.values()))
     try:
         with np.load(path, allow_pickle=False) as npz:
             return {key: npz[key] for key in npz.files}
     except MemoryError:
-        raise
+        raise _out_of_memory(path) from None
     except Exception as exc:  # any failure to decode the bytes means a damaged or foreign file
-        raise ModelFileError(f"cannot read model file {path!r}: {type(exc).__name__}: {exc} "
-                             "(truncated, corrupt or not a .npz model)") from None
+        raise ModelFileError(_unreadable(path, exc)) from None
+
+
+def _unreadable(path, exc):
+    """The ModelFileError message for a model file that cannot be decoded."""
+    return (f"cannot read model file {path!r}: {type(exc).__name__}: {exc} "
+            "(truncated, corrupt or not a .npz model)")
+
+
+def _out_of_memory(path):
+    """The error for a MemoryError while reading a model file."""
+    return ResourceError(f"not enough memory to read model file {path!r}; free memory or rebuild the model "
+                         "with a smaller --max-span")
 
 
 def _report_facets(planes, merged):

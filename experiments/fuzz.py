@@ -40,7 +40,7 @@ TEST_FILES = ("tests/test_fuzz.py", "tests/test_properties.py")
 
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--fuzz-examples", type=int, default=1000, help="inputs per fuzz test (12 tests)")
+    p.add_argument("--fuzz-examples", type=int, default=1000, help="inputs per fuzz test (13 tests)")
     p.add_argument("--property-examples", type=int, default=1000, help="cases per property (5 properties)")
     p.add_argument("--quick", action="store_true", help="50 inputs per fuzz test, 10 cases per property")
     p.add_argument("--out", default=str(ROOT / "results" / "fuzz"))

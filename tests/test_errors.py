@@ -430,13 +430,13 @@ def test_zero_normal():
 
 
 @pytest.mark.parametrize("field,value,want", [
-    ("finger_normal", [0.0, float("nan"), 1.0], "finger_normals has a NaN or inf entry in row 1"),
-    ("point", [0.0, float("inf"), 1.0], "points has a NaN or inf entry in row 1"),
-    ("point", [1e999, 0.0, 0.0], "points has a NaN or inf entry in row 1"),
+    ("finger_normal", [0.0, float("nan"), 1.0], "finger_normals has a NaN or inf entry in row 1: [0.0, nan, 1.0]"),
+    ("point", [0.0, float("inf"), 1.0], "points has a NaN or inf entry in row 1: [0.0, inf, 1.0]"),
+    ("point", [1e999, 0.0, 0.0], "points has a NaN or inf entry in row 1: [inf, 0.0, 0.0]"),
 ])
 def test_nan_or_inf_in_contacts(field, value, want):
     bad = dict(GOOD_CONTACTS[1], **{field: value})
-    with raises(ContactsError, want):
+    with raises(ContactsError, want, "every entry must be a finite number"):
         io.parse_contacts(contacts_doc(GOOD_CONTACTS[0], bad))
 
 
@@ -718,9 +718,75 @@ def test_large_model_file_not_a_zip(tmp_path, monkeypatch):
     monkeypatch.setattr(model_module, "MMAP_MIN_BYTES", 0)  # treat every file as large
     path = tmp_path / "model.npz"
     path.write_text("not a model")
-    with raises(ModelFileError, str(path)):
+    with raises(ModelFileError, str(path), "not a zip file", "not a .npz model"):
         ObjectModel.load(path)
 
+
+
+def _npz_with_header(path, arrays, name, shape, compressed):
+    """arrays as an .npz whose member ``name`` declares ``shape`` in its .npy header; its data
+    bytes are unchanged and the zip CRCs are valid (a hand-made or buggy file, not a damaged one)."""
+    import io as pyio
+
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED if compressed else zipfile.ZIP_STORED) as zf:
+        for key, a in arrays.items():
+            buf = pyio.BytesIO()
+            if key == name:
+                header = {"descr": np.lib.format.dtype_to_descr(a.dtype), "fortran_order": False, "shape": shape}
+                np.lib.format.write_array_header_1_0(buf, header)
+                buf.write(np.ascontiguousarray(a).tobytes())
+            else:
+                np.lib.format.write_array(buf, a, allow_pickle=False)
+            zf.writestr(f"{key}.npy", buf.getvalue())
+    return str(path)
+
+
+@pytest.mark.parametrize("compressed", [False, True])
+@pytest.mark.parametrize("mmap", [False, True])
+def test_model_file_header_declares_a_huge_array(tmp_path, box_arrays, monkeypatch, compressed, mmap):
+    """A header that declares 240 TB is refused from the header alone (no MemoryError, no allocation)."""
+    if mmap:
+        monkeypatch.setattr(model_module, "MMAP_MIN_BYTES", 0)
+    path = _npz_with_header(tmp_path / "huge.npz", box_arrays, "vertices", (10 ** 13, 3), compressed)
+    held = box_arrays["vertices"].nbytes
+    with raises(ModelFileError, f"cannot read model file {path!r}",
+                "member 'vertices.npy' declares an array of shape (10000000000000, 3) and dtype <f8",
+                f"but holds {held:,} bytes of data", "corrupt or not a .npz model"):
+        ObjectModel.load(path)
+
+
+def test_model_file_header_declares_a_smaller_array(tmp_path, box_arrays):
+    """A header that declares fewer bytes than its member holds is refused too (not read as a prefix)."""
+    path = _npz_with_header(tmp_path / "short.npz", box_arrays, "features_dmax", (5,), False)
+    with raises(ModelFileError, "member 'features_dmax.npy' declares an array of shape (5,)",
+                f"holds {box_arrays['features_dmax'].nbytes:,} bytes"):
+        ObjectModel.load(path)
+
+
+
+def test_model_file_member_that_is_not_an_array(tmp_path, box_arrays):
+    """np.load returns a member without the .npy suffix as raw bytes: refused by name."""
+    path = tmp_path / "raw.npz"
+    with zipfile.ZipFile(path, "w") as zf:
+        for key, a in box_arrays.items():
+            with zf.open(f"{key}.npy" if key != "content_hash" else key, "w") as fh:
+                np.lib.format.write_array(fh, a, allow_pickle=False)
+    with raises(ModelFileError, str(path), "member 'content_hash' is not a .npy array", "not a .npz model"):
+        ObjectModel.load(path)
+
+def test_model_file_larger_than_the_available_memory(box_file, monkeypatch):
+    _tiny_memory(monkeypatch, available=1024)
+    with raises(ResourceError, f"model file {str(box_file)!r} holds", "GiB of arrays", "GiB of memory is available"):
+        ObjectModel.load(box_file)
+
+
+def test_memory_error_while_reading_a_model_file(box_file, monkeypatch):
+    def out_of_memory(*args, **kwargs):
+        raise MemoryError("Unable to allocate 3 GiB")
+
+    monkeypatch.setattr(model_module.np, "load", out_of_memory)
+    with raises(ResourceError, f"not enough memory to read model file {str(box_file)!r}"):
+        ObjectModel.load(box_file)
 
 def test_saving_over_a_memory_mapped_model_does_not_crash_its_reader(tmp_path):
     script = (
@@ -797,6 +863,44 @@ def test_memory_check_passes_with_enough_memory(monkeypatch):
     _tiny_memory(monkeypatch, available=1 << 40)
     assert ObjectModel.from_mesh(objects.load("box"), bins=SMALL_BINS).num_facets == 48
 
+
+
+@pytest.fixture(scope="module")
+def box_span_file(box_mesh, tmp_path_factory):
+    """The box (diameter 0.123) built for a hand span of 3 cm, saved."""
+    model = ObjectModel.from_mesh(box_mesh, bins=SMALL_BINS, max_span=0.03)
+    return model.save(tmp_path_factory.mktemp("span") / "box_span.npz")
+
+
+def test_query_beyond_max_span(box_span_file):
+    """GOOD_CONTACTS 0 and 1 are 4 cm apart: a 3 cm span-bounded table cannot answer them."""
+    model = ObjectModel.load(box_span_file)
+    assert model.max_span == 0.03
+    with raises(ResourceError, "contacts 0 and 1 are 0.04 apart", "beyond the model's max_span 0.03",
+                "rebuild the model with a larger --max-span"):
+        cp.localize(model, io.parse_contacts(contacts_doc()), position_noise=0.0005)
+
+
+def test_query_within_max_span_is_answered(box_span_file):
+    model = ObjectModel.load(box_span_file)
+    near = contacts_doc({"point": [0.0, 0.0, 0.02], "finger_normal": [0.0, 0.0, -1.0]},
+                        {"point": [0.01, 0.0, 0.02], "finger_normal": [0.0, 0.0, -1.0]})
+    result, _ = recorded(cp.localize, model, io.parse_contacts(near), position_noise=0.0005)
+    assert result.status in ("ok", "underdetermined", "ambiguous") and len(result.hypotheses.arrays.cost) > 0
+
+
+@pytest.mark.parametrize("span", [-0.1, 0.0, float("nan"), float("inf"), "a"])
+def test_bad_max_span(box_mesh, span):
+    with raises(MeshError, "max_span must be a positive length in the mesh's units", f"got {span!r}"):
+        ObjectModel.from_mesh(box_mesh, bins=SMALL_BINS, max_span=span)
+
+
+def test_cli_query_beyond_max_span_exits_2(tmp_path, box_span_file, capsys):
+    good = write_json(tmp_path / "good.json", contacts_doc())
+    assert cli.main(["localize", box_span_file, "--contacts", good]) == 2
+    out, err = capsys.readouterr()
+    assert out == "" and len(err.splitlines()) == 1 and "Traceback" not in err, err
+    assert err.startswith("contactpose: error: contacts 0 and 1 are 0.04 apart") and "max_span 0.03" in err, err
 
 # ------------------------------------------------------------------------ CLI
 

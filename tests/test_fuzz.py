@@ -3,8 +3,8 @@
 The contract: whatever the input, the outcome is a result or a ContactPoseError.
 Inputs are drawn by hypothesis: arbitrary JSON-like values, mutated valid
 documents, arbitrary bytes as files, and model files that are truncated,
-bit-flipped (uniformly, or aimed at the zip headers), random, or rewritten with
-altered arrays.
+bit-flipped (uniformly, or aimed at the zip headers), random, rewritten with
+altered arrays, or rebuilt with .npy headers that do not match their data.
 
 Exceptions of a known library bug (``KNOWN_BUGS``, each reproduced by a strict
 xfail test in tests/test_errors.py) are counted but do not fail a test; any
@@ -454,6 +454,53 @@ def test_load_altered_arrays(scratch, model_files, data):
     buf = pyio.BytesIO()
     np.savez(buf, **changed)
     outcome("load_altered_arrays", _load_bytes, scratch, buf.getvalue(), mmap=data.draw(st.booleans()))
+
+
+header_shapes = st.lists(st.integers(0, 64) | st.integers(-3, 2 ** 62) | st.sampled_from([10 ** 13, 2 ** 63, 10 ** 30]),
+                         max_size=3).map(tuple)
+header_dtypes = st.sampled_from(["<f8", "<f4", "<f2", "<i8", "<i4", "|i1", "|b1", "<U3", "|S0", "|V7", "|O", ">f8"])
+
+
+def _npy_bytes(a, header=None):
+    """The .npy bytes of array a, with its header dict replaced by ``header`` (data unchanged)."""
+    buf = pyio.BytesIO()
+    if header is None:
+        np.lib.format.write_array(buf, a, allow_pickle=False)
+    else:
+        np.lib.format.write_array_header_1_0(buf, header)
+        buf.write(np.ascontiguousarray(a).tobytes())
+    return buf.getvalue()
+
+
+@FUZZ
+@given(st.data())
+def test_load_rewritten_headers(scratch, model_files, data):
+    """A zip with valid CRCs whose .npy headers declare other shapes, dtypes or orders than their
+    data holds, whose data is cut or padded, or whose member lost its .npy suffix (a hand-made
+    or buggy file: huge declared arrays must not reach an allocation)."""
+    model, _, arrays = model_files
+    members = {f"{k}.npy": _npy_bytes(a) for k, a in arrays.items()}
+    for _ in range(data.draw(st.integers(1, 3))):
+        key = data.draw(st.sampled_from(sorted(arrays)))
+        a = arrays[key]
+        header = {"descr": data.draw(st.just(np.lib.format.dtype_to_descr(a.dtype)) | header_dtypes),
+                  "fortran_order": data.draw(st.booleans()), "shape": data.draw(st.just(a.shape) | header_shapes)}
+        raw = _npy_bytes(a, header)
+        edit = data.draw(st.sampled_from(["keep", "cut", "pad", "rename"]))
+        if edit == "cut":
+            raw = raw[:data.draw(st.integers(0, len(raw)))]
+        elif edit == "pad":
+            raw += data.draw(st.binary(min_size=1, max_size=64))
+        members.pop(f"{key}.npy", None)
+        members[key if edit == "rename" else f"{key}.npy"] = raw  # np.load gives a member without .npy as bytes
+    buf = pyio.BytesIO()
+    method = data.draw(st.sampled_from([zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED]))
+    with zipfile.ZipFile(buf, "w", method) as zf:
+        for name, raw in members.items():
+            zf.writestr(name, raw)
+    loaded = outcome("load_rewritten_headers", _load_bytes, scratch, buf.getvalue(), mmap=data.draw(st.booleans()))
+    if loaded is not None:
+        _same_model(model, loaded)
 
 
 def test_fuzz_model_file_is_readable(model_files):
