@@ -1,6 +1,6 @@
 """Recall of the true facet tuple and top-1 pose success, fast vs paper (issue 3 acceptance).
 
-For each mesh (banana, carton, rock) the script simulates ``--grasps`` random grasps
+For each mesh (banana, carton, rock, rock1k) the script simulates ``--grasps`` random grasps
 (uniform random rotation, translation within ±0.5 diameter; 4 contacts sampled
 area-weighted on the facets; bounded noise, σ_x = 0.5 mm and σ_n = 1°, each contact's
 error within half the pair tolerance so every pair lies inside it) and records per grasp:
@@ -47,7 +47,7 @@ from contactpose.localize import localize
 from contactpose.metrics import SAME_CLASS_ADDS_FRAC, adds, pose_success, rotation_error_deg, translation_error
 from contactpose.model import ObjectModel
 
-MESHES = ("banana", "carton", "rock")
+MESHES = ("banana", "carton", "rock", "rock1k")
 POSITION_NOISE = 0.0005
 NORMAL_NOISE_DEG = 1.0
 FINGERS = 4
