@@ -57,14 +57,6 @@ class PairSet:
         pos = np.minimum(np.searchsorted(self._keys, key), len(self._keys) - 1)
         return self._keys[pos] == key
 
-    def sorted_keys(self, reverse=False):
-        """Sorted keys k·m + l of the pairs (l·m + k when ``reverse``), (s,) int64."""
-        key = ("keys", reverse)
-        if key not in self._csr:
-            a, b = (self.second, self.first) if reverse else (self.first, self.second)
-            self._csr[key] = np.sort(a * self.m + b)
-        return self._csr[key]
-
     def neighbours(self, reverse=False):
         """CSR adjacency (indptr (m+1,), targets) from first to second (or back)."""
         if reverse not in self._csr:
