@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: setup system-deps demo test test-all results results-quick bench clean
+.PHONY: setup system-deps lint demo test test-all results results-quick bench clean
 
 # Open3D's Linux wheel loads libusb-1.0 at import time.
 system-deps:
@@ -30,11 +30,15 @@ setup: system-deps $(STAMP)
 demo: setup
 	$(PY) -m contactpose demo
 
-test: setup
-	$(PY) -m pytest -q -m "not slow" -p no:cacheprovider
+lint: setup
+	$(VENV)/bin/lint-imports --no-cache
+	$(VENV)/bin/ruff check contactpose experiments tests
 
-test-all: setup
-	$(PY) -m pytest -q -p no:cacheprovider
+test: setup lint
+	$(PY) -m pytest -q -m "not slow" -p no:cacheprovider --durations=15
+
+test-all: setup lint
+	$(PY) -m pytest -q -p no:cacheprovider --durations=15
 
 bench: setup
 	$(PY) -m contactpose bench

@@ -5,11 +5,13 @@ Object Pose from Contact Measurements in 3-D Grasping* (ICRA 2003), made exact
 and faster, with the paper's own method kept as ``method="paper"``.
 """
 
-from contactpose import objects, simulate
 from contactpose.contacts import Contacts, Tolerance
 from contactpose.errors import ContactPoseError
-from contactpose.localize import PosePrior, Result, localize
-from contactpose.model import ObjectModel
+from contactpose.localize import localize
+from contactpose.model.object_model import ObjectModel
+from contactpose.sim import grasps as simulate
+from contactpose.sim import objects
+from contactpose.types import PosePrior, Result
 
 __all__ = ["ContactPoseError", "Contacts", "ObjectModel", "PosePrior", "Result", "Tolerance",
            "localize", "objects", "simulate"]

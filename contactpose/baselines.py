@@ -30,7 +30,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from contactpose.errors import ContactPoseError
-from contactpose.geometry import point_triangle_distance, triangle_pair_bounds
+from contactpose.geometry.kernels import point_triangle_distance, triangle_pair_bounds
+from contactpose.geometry.raycast import raycaster
+from contactpose.geometry.sampling import barycentric_uniform, points_in_triangles
 
 #: Surface samples for the nearest-facet look-up of the contact likelihood.
 SURFACE_SAMPLES = 20_000
@@ -52,7 +54,7 @@ class Surface:
     center : (3,) mean of the samples; radius : largest distance of a sample from center;
     neighbours : (m, D) int, for each facet the facets within ``neighbour_radius`` of it
     (exact triangle distance, itself included), padded by repeating the facet;
-    scene : Open3D ray-casting scene for exact closest points.
+    scene : the model's Raycaster, for exact closest points.
     """
 
     points: np.ndarray
@@ -64,11 +66,8 @@ class Surface:
     scene: object = None
 
     def closest_facets(self, points):
-        """Facet of the exact closest surface point (Open3D ray-casting scene). points : (N, 3) -> (N,) int"""
-        import open3d as o3d
-
-        query = o3d.core.Tensor(np.ascontiguousarray(points, dtype=np.float32))
-        return self.scene.compute_closest_points(query)["primitive_ids"].numpy().astype(np.int64)
+        """Facet of the exact closest surface point (the model's raycaster). points : (N, 3) -> (N,) int"""
+        return self.scene.closest_points(points)[1]
 
 
 def sample_surface(model, count=SURFACE_SAMPLES, seed=0, min_per_facet=MIN_PER_FACET,
@@ -81,17 +80,14 @@ def sample_surface(model, count=SURFACE_SAMPLES, seed=0, min_per_facet=MIN_PER_F
     areas = model.planes.areas[valid]
     per_facet = np.maximum(rng.multinomial(count, areas / areas.sum()), min_per_facet)
     facets = np.repeat(valid, per_facet)
-    u, v = rng.random((2, len(facets)))
-    flip = u + v > 1
-    u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
+    u, v = barycentric_uniform(rng, len(facets))
     first = np.concatenate([[0], np.cumsum(per_facet)[:-1]])
     u[first], v[first] = 1 / 3, 1 / 3                    # the centroid of every facet
-    tri = model.triangles[facets]
-    points = tri[:, 0] + u[:, None] * (tri[:, 1] - tri[:, 0]) + v[:, None] * (tri[:, 2] - tri[:, 0])
+    points = points_in_triangles(model.triangles[facets], u, v)
     center = points.mean(axis=0)
     radius = float(np.linalg.norm(points - center, axis=1).max())
     return Surface(points, model.planes.normals[facets], facets, center, radius,
-                   facet_neighbours(model, neighbour_radius), _scene(model))
+                   facet_neighbours(model, neighbour_radius), raycaster(model))
 
 
 def facet_neighbours(model, radius):
@@ -111,16 +107,6 @@ def facet_neighbours(model, radius):
     within = np.arange(len(k)) - np.repeat(np.cumsum(counts) - counts, counts)
     out[k, within + 1] = l
     return out
-
-
-def _scene(model):
-    """Open3D ray-casting scene of the model's triangles (ids are facet indices)."""
-    import open3d as o3d
-
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(model.vertices.astype(np.float32)),
-                        o3d.core.Tensor(model.faces.astype(np.uint32)))
-    return scene
 
 
 @dataclass

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import json
 import os
-import platform
 import subprocess
 import sys
 import tempfile
@@ -20,10 +19,13 @@ import time
 
 import numpy as np
 
-from contactpose import objects, simulate
 from contactpose.contacts import Tolerance
-from contactpose.localize import contact_spread, localize
-from contactpose.model import ObjectModel
+from contactpose.errors import ContactPoseError
+from contactpose.localize import localize
+from contactpose.model.object_model import ObjectModel
+from contactpose.sim import grasps as simulate
+from contactpose.sim import objects
+from contactpose.sweep import machine_description
 
 STAGES = ("pairs", "tree", "pose", "rank", "total")
 #: Sensor noise of the benchmark grasps: 0.5 mm and 1°, bounded within tolerance.
@@ -33,24 +35,10 @@ NORMAL_NOISE_DEG = 1.0
 WARMUP = 3
 
 
-def machine_description():
-    """CPU model, core count and memory, for the results."""
-    import psutil
-
-    cpu = platform.processor() or platform.machine()
-    try:
-        with open("/proc/cpuinfo") as fh:
-            cpu = next(line.split(":", 1)[1].strip() for line in fh if line.startswith("model name"))
-    except (OSError, StopIteration):
-        pass
-    return {"cpu": cpu, "cores": os.cpu_count(), "memory_gib": round(psutil.virtual_memory().total / 2**30, 1),
-            "python": platform.python_version(), "numpy": np.__version__}
-
-
 #: Build repeats: the median of several for small models, one for large ones.
 SMALL_MODEL_FACETS = 2000
 #: Build options per model: the 83,846-facet espresso object is built for a hand of span
-#: 0.25 m (issue 10), and its grasps are drawn within that span.
+#: 0.25 m (research/scale.md), and its grasps are drawn within that span.
 BUILD_OPTIONS = {"espresso83846": {"max_span": 0.25}}
 
 
@@ -61,7 +49,7 @@ def build_in_subprocess(name, mesh_path):
     code = (
         "import resource, time, json, warnings, numpy as np, trimesh\n"
         "warnings.simplefilter('ignore')\n"
-        "from contactpose import objects\nfrom contactpose.model import ObjectModel\n"
+        "from contactpose.sim import objects\nfrom contactpose.model.object_model import ObjectModel\n"
         f"mesh = trimesh.load({mesh_path!r}, force='mesh', process=False)\n"
         f"options = {BUILD_OPTIONS.get(name, {})!r}\n"
         "ObjectModel.from_mesh(objects.load('banana'))\n"
@@ -96,7 +84,7 @@ def grasps_for(model, name, runs, rng):
 def within_span(contacts, span):
     """Whether every contact pair, widened by the pair tolerance, is within the span."""
     slack = Tolerance.from_noise(POSITION_NOISE, NORMAL_NOISE_DEG).distance
-    return contact_spread(contacts) + slack <= span
+    return contacts.spread + slack <= span
 
 
 def true_found(model, result, grasp, method):
@@ -185,8 +173,6 @@ def run_bench(args):
     names = args.models or ["banana", "rock1k", "espresso6767", "espresso83846"]
     unknown = [n for n in names if n not in objects.names()]
     if unknown:
-        from contactpose.errors import ContactPoseError
-
         raise ContactPoseError(f"unknown model {unknown[0]!r}; choose from {objects.names()}")
     start = time.perf_counter()
     with tempfile.TemporaryDirectory() as workdir:

@@ -1,4 +1,4 @@
-"""Contact measurements (paper eq. 1) and the pair conditions between fingers (§3.2).
+"""Contact measurements (paper eq. 1) and the tolerances they are matched with.
 
 A contact is an oriented point: the contact point x̃_i and the finger surface
 normal ñ_i, which is anti-parallel to the object's outward normal there.
@@ -8,8 +8,6 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass
-from functools import lru_cache
-from itertools import combinations
 
 import numpy as np
 
@@ -160,38 +158,3 @@ class Tolerance:
     def per_contact_bounds(self):
         """Error bounds per contact (position, angle) that keep every pair within tolerance."""
         return 0.5 * self.distance, 0.5 * self.angle
-
-
-@dataclass(frozen=True)
-class PairConditions:
-    """Δ̃_ij and α̃_ij for all finger pairs i < j.
-
-    pairs : list of (i, j); distance, angle : (P,) float (angle in radians);
-    h_ij, h_ji : (P,) float, signed distance of contact j from contact i's tangent
-    plane, -ñ_iᵀ(x̃_j - x̃_i), and the reverse.
-    """
-
-    pairs: list
-    distance: np.ndarray
-    angle: np.ndarray
-    h_ij: np.ndarray
-    h_ji: np.ndarray
-
-
-@lru_cache(maxsize=32)
-def _finger_pairs(n):
-    """All finger pairs i < j of n fingers: (list of (i, j), i (P,), j (P,))."""
-    pairs = list(combinations(range(n), 2))
-    i, j = np.array(pairs, dtype=np.int64).reshape(-1, 2).T
-    return pairs, i, j
-
-
-def pair_conditions(contacts):
-    """Δ̃_ij = |x̃_j - x̃_i| and α̃_ij = arccos(ñ_i·ñ_j) for all i < j (§3, fig. 6)."""
-    pairs, i, j = _finger_pairs(contacts.n)
-    nf, d = contacts.finger_normals, contacts.points[j] - contacts.points[i]
-    distance = np.sqrt(np.einsum("ij,ij->i", d, d))
-    cos = np.einsum("ij,ij->i", nf[i], nf[j])
-    h_ij = -np.einsum("ij,ij->i", nf[i], d)
-    h_ji = np.einsum("ij,ij->i", nf[j], d)
-    return PairConditions(pairs, distance, np.arccos(np.clip(cos, -1.0, 1.0)), h_ij, h_ji)

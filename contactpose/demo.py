@@ -6,10 +6,11 @@ import os
 
 import numpy as np
 
-from contactpose import objects, simulate
+from contactpose.geometry.metrics import rotation_error_deg, translation_error
 from contactpose.localize import localize
-from contactpose.metrics import rotation_error_deg, translation_error
-from contactpose.model import ObjectModel
+from contactpose.model.object_model import ObjectModel
+from contactpose.sim import grasps as simulate
+from contactpose.sim import objects
 from contactpose.viz import plot_localization
 
 #: Tolerance settings of the demo (the paper gives none): 0.5 mm and 1° sensor noise.

@@ -33,3 +33,16 @@ class ResourceError(ContactPoseError):
 
 class ScanError(ContactPoseError):
     """A point cloud that cannot be turned into a mesh."""
+
+
+def check_count(value, name, *, minimum=1, allow_none=False):
+    """``value`` as an int if it is an integer >= ``minimum`` (None passes when allowed),
+    else ContactPoseError naming it. ``True`` and ``False`` are not counts."""
+    import numbers
+
+    if value is None and allow_none:
+        return None
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < minimum:
+        kind = "a positive integer" if minimum == 1 else f"an integer >= {minimum}"
+        raise ContactPoseError(f"{name} must be {kind}{' or None' if allow_none else ''}, got {value!r}")
+    return int(value)

@@ -51,6 +51,7 @@ import json
 import logging
 import math
 import os
+import platform
 import sys
 import time
 import traceback
@@ -471,10 +472,22 @@ def _load_finished(out, record, cells):
     return done
 
 
+def machine_description():
+    """CPU model, core count and memory, for the results."""
+    import psutil
+
+    cpu = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as fh:
+            cpu = next(line.split(":", 1)[1].strip() for line in fh if line.startswith("model name"))
+    except (OSError, StopIteration):
+        pass
+    return {"cpu": cpu, "cores": os.cpu_count(), "memory_gib": round(psutil.virtual_memory().total / 2**30, 1),
+            "python": platform.python_version(), "numpy": np.__version__}
+
+
 def _machine():
     try:
-        from contactpose.bench import machine_description
-
         return machine_description()
     except Exception:  # machine info is a courtesy; never fail a sweep over it
         return {}

@@ -1,4 +1,4 @@
-"""Next touch: the probe that best separates the remaining pose classes (issue 9, item 6).
+"""Next touch: the probe that best separates the remaining pose classes.
 
 A probe is a ray in the world frame: a finger starts at ``start`` and moves along
 ``direction`` until it touches. Under each pose class the ray is cast against the
@@ -44,10 +44,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from contactpose.contacts import Contacts
-from contactpose.errors import ContactPoseError
-from contactpose.freespace import raycaster
-
-log = logging.getLogger(__name__)
+from contactpose.errors import ContactPoseError, check_count
+from contactpose.geometry.raycast import raycaster
+from contactpose.geometry.sampling import uniform_in_triangles
 
 #: Default ray start: this many object diameters off the aimed surface point.
 STANDOFF_DIAMETERS = 2.5
@@ -67,6 +66,8 @@ MISS_PENALTY = 0.5
 #: Probes are scored in chunks of at most this many (probe, member, member) entries.
 MEMBER_PAIRS_PER_CHUNK = 2_000_000
 PRIORS = ("likelihood", "classes", "uniform")
+
+log = logging.getLogger(__name__)
 #: Predicted outcome kinds: no contact, a contact, the start lies inside the object.
 MISS, CONTACT, BLOCKED = 0, 1, 2
 
@@ -151,17 +152,12 @@ def candidate_probes(model, poses, rng, n_candidates=200, standoff=None):
     point area-weighted on the surface, uniform in its facet). Returns
     origins (N, 3), directions (N, 3) unit, aims (N, 3) world.
     """
-    if not (isinstance(n_candidates, (int, np.integer)) and n_candidates >= 1):
-        raise ContactPoseError(f"n_candidates must be a positive integer, got {n_candidates!r}")
+    check_count(n_candidates, "n_candidates")
     standoff = STANDOFF_DIAMETERS * model.diameter if standoff is None else float(standoff)
     valid = np.flatnonzero(model.planes.valid)
     area = model.planes.areas[valid]
     facets = rng.choice(valid, size=n_candidates, p=area / area.sum())
-    u, v = rng.random((2, n_candidates))
-    flip = u + v > 1
-    u[flip], v[flip] = 1 - u[flip], 1 - v[flip]
-    tri = model.triangles[facets]
-    p_obj = tri[:, 0] + u[:, None] * (tri[:, 1] - tri[:, 0]) + v[:, None] * (tri[:, 2] - tri[:, 0])
+    p_obj = uniform_in_triangles(model.triangles[facets], rng)
     which = np.arange(n_candidates) % len(poses)
     R, t = poses[which, :3, :3], poses[which, :3, 3]
     aims = np.einsum("nij,nj->ni", R, p_obj) + t
@@ -285,8 +281,8 @@ def _family(T0, free_t, axis, params, diameter, centre):
 
 def _on_patches(model, facets, poses, contacts, limit):
     """(P,) bool: every assigned contact within ``limit`` of its patch under each pose."""
-    from contactpose.geometry import point_triangle_distance
-    from contactpose.patches import nearest_members
+    from contactpose.geometry.kernels import point_triangle_distance
+    from contactpose.model.patches import nearest_members
 
     assigned = np.flatnonzero(np.asarray(facets) >= 0)
     f = np.asarray(facets)[assigned]
@@ -488,7 +484,7 @@ def simulate_touch(model, pose, touch, rng=None, *, position_noise=0.0, normal_n
     misses (or starts inside the object).
     """
     from contactpose.contacts import Tolerance
-    from contactpose.simulate import perturb_normals
+    from contactpose.geometry.sampling import perturb_normals
 
     kind, points, normals, _ = predict_outcomes(model, pose[None], touch.start[None], touch.direction[None])
     if kind[0, 0] != CONTACT:
@@ -520,47 +516,3 @@ def random_touch(model, result, *, rng, contacts=None, n_candidates=200, prior="
     j = int(rng.integers(len(origins)))
     return suggest_touch(model, result, (origins[j:j + 1], directions[j:j + 1]), rng=rng, contacts=contacts,
                          prior=prior)
-
-
-# ----------------------------------------------------------------- CLI
-
-def register_cli(subparsers):
-    """Add ``next-touch MODEL_OR_MESH --contacts CONTACTS.json [...]``; handler :func:`run_cli`."""
-    p = subparsers.add_parser("next-touch", help="suggest the probe that best separates the remaining poses",
-                              description="Localize, then propose the next touch (a world point and approach "
-                                          "direction) that best separates the pose classes that still fit.")
-    p.add_argument("model", metavar="MODEL_OR_MESH", help="model .npz, mesh file or built-in object name")
-    p.add_argument("--contacts", required=True, help="CONTACTS.json")
-    p.add_argument("--position-noise", type=float, help="σ of contact points (length units)")
-    p.add_argument("--normal-noise-deg", type=float, default=1.0, help="σ of normals (degrees)")
-    p.add_argument("--candidates", type=int, default=200, help="number of candidate probes (default 200)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the candidate sampling")
-    p.add_argument("-o", "--output", help="write the suggestion as JSON")
-    p.set_defaults(func=run_cli)
-
-
-def run_cli(args):
-    from contactpose import io
-    from contactpose.cli import _model_or_mesh
-    from contactpose.localize import localize
-
-    if args.candidates < 1:
-        raise ContactPoseError(f"--candidates must be at least 1, got {args.candidates}")
-    model = _model_or_mesh(args.model)
-    contacts = io.read_contacts(args.contacts)
-    result = localize(model, contacts, position_noise=args.position_noise, normal_noise_deg=args.normal_noise_deg)
-    touch = suggest_touch(model, result, rng=np.random.default_rng(args.seed), contacts=contacts,
-                          n_candidates=args.candidates)
-    classes = len(result.classes)
-    print(f"status: {result.status}  pose classes: {classes}"
-          + (f" (probabilities {', '.join(f'{p:.2f}' for p in touch.probabilities)})" if classes > 1 else ""))
-    fmt = lambda v: "[" + ", ".join(f"{x:.6g}" for x in v) + "]"
-    print(f"next touch: point {fmt(touch.point)}  direction {fmt(touch.direction)}")
-    print(f"start: {fmt(touch.start)}  expected gain: {touch.expected_gain:.3f} bits")
-    for c, o in enumerate(touch.outcomes):
-        where = f" at {fmt(o['point'])}" if o["point"] is not None else ""
-        print(f"  class {c}: {o['kind']}{where} (group {o['group']})")
-    if args.output:
-        io.write_json(args.output, {"status": result.status, "classes": [c.to_dict() for c in result.classes],
-                                    "touch": touch.to_dict()})
-    return 0

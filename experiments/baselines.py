@@ -36,9 +36,13 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from contactpose import baselines as bl
-from contactpose import metrics, objects, simulate, sweep
-from contactpose.localize import PosePrior, localize
-from contactpose.model import ObjectModel
+from contactpose import sweep
+from contactpose.geometry import metrics
+from contactpose.localize import localize
+from contactpose.model.object_model import ObjectModel
+from contactpose.sim import grasps as simulate
+from contactpose.sim import objects
+from contactpose.types import PosePrior
 
 NAME = "baselines"
 log = logging.getLogger(NAME)

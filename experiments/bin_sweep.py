@@ -23,10 +23,13 @@ from pathlib import Path
 
 import numpy as np
 
-from contactpose import objects, simulate, sweep
-from contactpose.contacts import Tolerance, pair_conditions
-from contactpose.model import ObjectModel
-from contactpose.table import bin_index, query_limits
+from contactpose import sweep
+from contactpose.contacts import Tolerance
+from contactpose.model.object_model import ObjectModel
+from contactpose.model.table import bin_index, query_limits
+from contactpose.search.pairs import pair_conditions
+from contactpose.sim import grasps as simulate
+from contactpose.sim import objects
 
 NAME = "bin_sweep"
 AXES = ("p_dmax", "p_dmin", "p_alpha")

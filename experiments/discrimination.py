@@ -1,4 +1,4 @@
-"""Discrimination beyond the paper (issue 9, item 7): hypothesis counts, recall, top-1 and
+"""Discrimination beyond the paper: hypothesis counts, recall, top-1 and
 pose classes stage by stage, and ambiguity resolved by suggested vs random extra touches.
 
 Meshes: the built-in banana, box, carton, cylinder, sphere, rock, rock1k, and a concave
@@ -16,19 +16,20 @@ adding to the one before:
 3. ``patches``    + patches and the handedness test: the full default search, ``localize``;
 4. ``in_facet``   + the in-facet check: keep the hypotheses that some pose near their
                   closed form may fit within noise, triangles included
-                  (``contactpose.infacet.within_noise``, a lower bound on the best χ²);
+                  (``contactpose.scoring.infacet.within_noise``, a lower bound on the best χ²);
 5. ``free_space`` + the free-space check (``localize(..., finger_radius=r)``: the ray of one
                   finger radius, on determined hypotheses).
 
 Stages 1–3 rank by the plane χ² (normal and point-to-plane residuals of the closed-form
 pose), which is all their constraints can tell; ``fit`` counts the hypotheses among the
 best 256 that pass the fit test under it. At facet level (stages 1–2) tuples on the same
-planes are posed once (one per distinct plane tuple, as the patch search of stage 3 does). Stages 4–5 rank by the full χ². Columns per stage: hypotheses
-left, recall (the true facet tuple is among them; stages 3–5 compare patch labels on
+planes are posed once (one per distinct plane tuple, as the patch search of stage 3 does).
+Stages 4–5 rank by the full χ². Columns per stage: hypotheses left, recall (the true facet
+tuple is among them; stages 3–5 compare patch labels on
 models with patches, whose coplanar facets are interchangeable), top-1 (the best pose is
 the true placement: ADD-S < 5 % of the diameter; ``top1_strict``: rotation < 5° and
 translation < 5 % of the diameter), and distinct pose classes among the fitting hypotheses
-(``localize.pose_classes``: ADD-S grouping of the best 256).
+(``scoring.classes.classify_poses``: ADD-S grouping of the best 256).
 
 Touch study: every grasp left with >= 2 pose classes by ``localize`` gets up to two extra
 touches, suggested (``touch.suggest_touch``) or random (a random candidate probe), made on
@@ -57,21 +58,25 @@ import os
 import platform
 import time
 import zlib
-from types import SimpleNamespace
+from typing import NamedTuple
 
 import numpy as np
 
-from contactpose import objects, simulate
 from contactpose import touch as touchmod
-from contactpose.contacts import Tolerance, pair_conditions
-from contactpose.freespace import free_space_violations
-from contactpose.infacet import within_noise
-from contactpose.hypotheses import admissible_pairs, join_tuples
-from contactpose.localize import MAX_CLASS_HYPOTHESES, fit_threshold, localize, pose_classes
-from contactpose.metrics import SAME_CLASS_ADDS_FRAC, adds, pose_success
-from contactpose.model import ObjectModel
-from contactpose.residuals import normal_residuals, offset_residuals, to_object_frame, whitened_cost
+from contactpose.contacts import Tolerance
+from contactpose.geometry.metrics import SAME_CLASS_ADDS_FRAC, adds, pose_success
+from contactpose.localize import localize
+from contactpose.model.object_model import ObjectModel
+from contactpose.scoring.classes import MAX_CLASS_HYPOTHESES, classify_poses
+from contactpose.scoring.freespace import free_space_violations
+from contactpose.scoring.infacet import within_noise
+from contactpose.search.pairs import admissible_pairs, pair_conditions
+from contactpose.search.tree import join_tuples
+from contactpose.sim import grasps as simulate
+from contactpose.sim import objects
 from contactpose.solvers.closed_form import fit_poses
+from contactpose.solvers.residuals import normal_residuals, offset_residuals, to_object_frame, whitened_cost
+from contactpose.types import fit_threshold
 
 log = logging.getLogger("discrimination")
 
@@ -130,16 +135,24 @@ def plane_ids(model):
     return np.unique(key, axis=0, return_inverse=True)[1].ravel()
 
 
+
+class View(NamedTuple):
+    """The best hypotheses of a stage, best first: chi2 (H,), poses (H, 4, 4)."""
+
+    chi2: np.ndarray
+    poses: np.ndarray
+
+
 def ranked_planes(model, contacts, facets, tolerance):
     """Closed-form poses and plane χ² (no lateral term) of facet tuples (H, n).
 
     Tuples whose facets lie on the same planes have the same plane χ² and, unless
     underdetermined, the same pose: each distinct plane tuple is posed once (its first
     facet tuple), in chunks. Returns a view of the best MAX_CLASS_HYPOTHESES distinct
-    plane tuples, best first (chi2, poses), as pose_classes wants it.
+    plane tuples, best first (chi2, poses), as classify_poses wants it.
     """
     if len(facets) == 0:
-        return SimpleNamespace(chi2=np.zeros(0), poses=np.zeros((0, 4, 4)), probability=None)
+        return View(np.zeros(0), np.zeros((0, 4, 4)))
     _, first = np.unique(plane_ids(model)[facets], axis=0, return_index=True)
     reps = facets[first]
 
@@ -157,14 +170,14 @@ def ranked_planes(model, contacts, facets, tolerance):
         chi2[lo:lo + CHUNK] = whitened_cost(r_n, r_o, np.zeros_like(r_o), tolerance.normal_noise,
                                             tolerance.position_noise)
     order = np.argsort(chi2, kind="stable")[:MAX_CLASS_HYPOTHESES]
-    return SimpleNamespace(chi2=chi2[order], poses=fit(reps[order]).poses(), probability=None)
+    return View(chi2[order], fit(reps[order]).poses())
 
 
 def ranked_view(chi2, poses_of):
-    """The best MAX_CLASS_HYPOTHESES hypotheses, best first, as pose_classes wants them."""
+    """The best MAX_CLASS_HYPOTHESES hypotheses, best first, as classify_poses wants them."""
     order = np.argsort(chi2, kind="stable")[:MAX_CLASS_HYPOTHESES]
     poses = poses_of(order) if len(order) else np.zeros((0, 4, 4))
-    return SimpleNamespace(chi2=chi2[order], poses=poses, probability=None)
+    return View(chi2[order], poses)
 
 
 def has_row(tuples, row):
@@ -181,7 +194,7 @@ def stage_stats(model, grasp, prefix, tuples, truth_key, key_of, view):
         out[f"{prefix}_top1"] = adds(best, grasp.pose, model.surface_points, model.surface_tree) \
             < SAME_CLASS_ADDS_FRAC * model.diameter
         out[f"{prefix}_top1_strict"] = bool(pose_success(best, grasp.pose, model.diameter))
-        out[f"{prefix}_classes"] = len(pose_classes(model, view, n))
+        out[f"{prefix}_classes"] = len(classify_poses(model, view.poses, view.chi2, n))
     else:
         out.update({f"{prefix}_top1": False, f"{prefix}_top1_strict": False, f"{prefix}_classes": 0})
     return out
@@ -212,7 +225,7 @@ def run_grasp(model, name, i, grasp, tolerance, args):
     row.update(stage_stats(model, grasp, "patches", a.facets, truth, key, view))
     row["patches_ms"] = 1000 * result.timing["total"]
     row["status"] = result.status
-    # stage 4: the in-facet check as a filter (contactpose.infacet: a lower bound on the best χ²
+    # stage 4: the in-facet check as a filter (contactpose.scoring.infacet: a lower bound on the best χ²
     # with the lateral term over the poses near the closed form)
     fits = np.flatnonzero(within_noise(model, grasp.contacts, a, result.tolerance, fit_threshold(grasp.contacts.n)))
     row.update(stage_stats(model, grasp, "in_facet", a.facets[fits], truth, key, a.take(fits)))

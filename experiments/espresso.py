@@ -1,13 +1,13 @@
-"""The paper's espresso-machine experiment, recreated on a simulated scan (issue 6, item 5).
+"""The paper's espresso-machine experiment, recreated on a simulated scan.
 
 The paper scanned a real coffee maker into 83,846 facets, cut off regions of little
 interest and reduced the mesh to 6,767 facets, then localized grasps on it. Here:
 
-1. generate the procedural machine (``contactpose.espresso.espresso_machine``, about
+1. generate the procedural machine (``contactpose.sim.espresso.espresso_machine``, about
    80,000 facets): the *true* object;
-2. scan it with the simulated range scanner (``contactpose.scanner.scan``);
+2. scan it with the simulated range scanner (``contactpose.sim.range_scanner.scan``);
 3. reconstruct, crop everything below z = 0.035 m (the plinth and the drip tray's sides:
-   the machine stands there) and reduce to about 6,767 facets (``contactpose.scan``);
+   the machine stands there) and reduce to about 6,767 facets (``contactpose.scan.reconstruct``);
 4. build the contact model of the reduced mesh (``ObjectModel.from_mesh`` defaults);
 5. simulate grasps on the true object and localize them on the scanned model.
 
@@ -55,14 +55,21 @@ import numpy as np
 import open3d as o3d
 import trimesh
 
-from contactpose import simulate, sweep
+from contactpose import sweep
 from contactpose.contacts import Contacts, Tolerance
-from contactpose.espresso import SIZE, espresso_machine, espresso_parts
+from contactpose.geometry.metrics import (
+    SUCCESS_ROT_DEG,
+    SUCCESS_TRANS_FRAC,
+    pose_success,
+    rotation_error_deg,
+    translation_error,
+)
 from contactpose.localize import localize
-from contactpose.metrics import SUCCESS_ROT_DEG, SUCCESS_TRANS_FRAC, pose_success, rotation_error_deg, translation_error
-from contactpose.model import ObjectModel
-from contactpose.scan import ScanOptions, scan_to_mesh, surface_agreement, write_mesh
-from contactpose.scanner import scan
+from contactpose.model.object_model import ObjectModel
+from contactpose.scan.reconstruct import ScanOptions, scan_to_mesh, surface_agreement, write_mesh
+from contactpose.sim import grasps as simulate
+from contactpose.sim.espresso import SIZE, espresso_machine, espresso_parts
+from contactpose.sim.range_scanner import scan
 
 #: Everything below this height is cut off: the plinth and the drip tray's sides.
 CROP = (-1.0, -1.0, 0.035, 1.0, 1.0, 1.0)

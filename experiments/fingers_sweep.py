@@ -20,9 +20,13 @@ from pathlib import Path
 
 import numpy as np
 
-from contactpose import metrics, objects, simulate, sweep
-from contactpose.localize import STATUSES, localize
-from contactpose.model import ObjectModel
+from contactpose import sweep
+from contactpose.geometry import metrics
+from contactpose.localize import localize
+from contactpose.model.object_model import ObjectModel
+from contactpose.sim import grasps as simulate
+from contactpose.sim import objects
+from contactpose.types import STATUSES
 
 NAME = "fingers_sweep"
 

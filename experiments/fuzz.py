@@ -1,4 +1,4 @@
-"""Long fuzzing and property run (issue 8 acceptance): count inputs and uncaught exceptions.
+"""Long fuzzing and property run: count inputs and uncaught exceptions.
 
 Runs tests/test_fuzz.py and tests/test_properties.py under pytest with large example
 counts (``CONTACTPOSE_FUZZ_EXAMPLES`` per fuzz test, ``CONTACTPOSE_PROPERTY_EXAMPLES``

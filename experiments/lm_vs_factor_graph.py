@@ -1,4 +1,4 @@
-"""LM versus factor-graph fusion (issue 4): pose error and top-1 success on the same inputs.
+"""LM versus factor-graph fusion: pose error and top-1 success on the same inputs.
 
 Every grasp is localized once (``localize``, method "fast": all admissible facet tuples,
 closed-form poses, ranked by χ²). The solvers then see the same hypothesis set:
@@ -41,14 +41,19 @@ import warnings
 import gtsam
 import numpy as np
 
-from contactpose import objects, simulate
 from contactpose.contacts import Contacts, Tolerance
-from contactpose.localize import OUTLIER_PENALTY, PosePrior, localize
-from contactpose.metrics import SAME_CLASS_ADDS_FRAC, adds, pose_success, rotation_error_deg, translation_error
-from contactpose.model import ObjectModel
-from contactpose.residuals import paper_cost, paper_offset_residuals, normal_residuals
+from contactpose.geometry.metrics import SAME_CLASS_ADDS_FRAC, adds, pose_success, rotation_error_deg, translation_error
+from contactpose.localize import localize
+from contactpose.model.object_model import ObjectModel
+from contactpose.scoring.classes import pose_classes
+from contactpose.scoring.rank import closed_form_arrays, refined_arrays
+from contactpose.scoring.status import ambiguous
+from contactpose.sim import grasps as simulate
+from contactpose.sim import objects
 from contactpose.solvers import factor_graph as fg
 from contactpose.solvers.lm import fit_lm_all
+from contactpose.solvers.residuals import normal_residuals, paper_cost, paper_offset_residuals
+from contactpose.types import AMBIGUOUS_PROBABILITY, DEFAULT_REFINE, OUTLIER_PENALTY, ROBUST, PosePrior
 
 log = logging.getLogger("lm_vs_factor_graph")
 
@@ -116,6 +121,14 @@ def reachable(model, refinement, T_true):
 
 # ------------------------------------------------------------------- sweep ---
 
+
+def refined_ambiguous(model, contacts, refinement, arrays, tolerance):
+    """The library's ambiguity rule on a factor-graph refinement: its hypotheses' pose
+    classes, weighted by their probabilities (scoring.status.ambiguous)."""
+    refined = refined_arrays(model, contacts, refinement, arrays.fit.take(refinement.index), tolerance)
+    return ambiguous(pose_classes(model, refined, contacts.n, fits=np.ones(len(refined.cost), bool)))
+
+
 def run_grasp(model, name, g, sx_frac, sn_deg, priors, rng, part):
     """All methods on one grasp, for each (σ_r, σ_t frac) prior level. -> list of CSV rows
 
@@ -127,7 +140,7 @@ def run_grasp(model, name, g, sx_frac, sn_deg, priors, rng, part):
     sx = sx_frac * model.diameter
     tol = Tolerance.from_noise(sx, sn_deg)
     arrays, t_loc = localize_arrays(model, g.contacts, sx, sn_deg)
-    true_arrays = fg.closed_form_arrays(model, g.contacts, g.facets[None], tol)
+    true_arrays = closed_form_arrays(model, g.contacts, g.facets[None], tol)
     base = dict(part=part, object=name, sigma_x_frac=sx_frac, sigma_n_deg=sn_deg, n_hyp=len(arrays.cost),
                 determined=int(not true_arrays.fit.underdetermined[0]))
     rows = []
@@ -135,7 +148,7 @@ def run_grasp(model, name, g, sx_frac, sn_deg, priors, rng, part):
     clock = time.perf_counter()
     ref = fg.refine_hypotheses(model, g.contacts, arrays, tol) if found else None
     t_fg = time.perf_counter() - clock
-    fg_amb = int(fg.ambiguous(model, ref).ambiguous) if found else 0
+    fg_amb = int(refined_ambiguous(model, g.contacts, ref, arrays, tol)) if found else 0
     oracle_fg = fg.refine_hypotheses(model, g.contacts, true_arrays, tol).poses[0]
     for sr, st in priors:
         prior = noisy_prior(g.pose, sr, st * model.diameter, rng)
@@ -156,7 +169,7 @@ def run_grasp(model, name, g, sx_frac, sn_deg, priors, rng, part):
         t_p = time.perf_counter() - clock
         oracle = fg.refine_hypotheses(model, g.contacts, true_arrays, tol, prior=prior).poses[0]
         rows.append(row("fg-prior", refp.poses[0] if found else None, oracle, t_loc + t_p,
-                        int(fg.ambiguous(model, refp).ambiguous) if found else 0,
+                        int(refined_ambiguous(model, g.contacts, refp, arrays, tol)) if found else 0,
                         reachable(model, refp, g.pose) if found else 0, refp.probability[0] if found else np.nan))
     return rows
 
@@ -210,7 +223,7 @@ def acceptance_grasp(model, name, g, rng):
     sx, (sr, st) = DEFAULT_CONTACT[0] * model.diameter, DEFAULT_PRIOR
     prior = noisy_prior(g.pose, sr, st * model.diameter, rng)
     tol = Tolerance.from_noise(sx, DEFAULT_CONTACT[1])
-    true_arrays = fg.closed_form_arrays(model, g.contacts, g.facets[None], tol)
+    true_arrays = closed_form_arrays(model, g.contacts, g.facets[None], tol)
     fit = true_arrays.fit
     base = dict(part="acceptance", object=name, sigma_x_frac=DEFAULT_CONTACT[0], sigma_n_deg=DEFAULT_CONTACT[1],
                 prior_rot_deg=sr, prior_trans_frac=st, determined=int(not fit.underdetermined[0]),
@@ -349,7 +362,7 @@ def speed(models, n_refinements, n_trials, rng, repeats=3):
             for _ in range(repeats):
                 clock = time.perf_counter()
                 runs.append(fg.refine_hypotheses(model, g.contacts, arrays, tol))
-                calls.append((time.perf_counter() - clock) / min(fg.DEFAULT_K, len(arrays.cost)))
+                calls.append((time.perf_counter() - clock) / min(DEFAULT_REFINE, len(arrays.cost)))
             first += runs[0].seconds.tolist()
             wall += np.min([r.seconds for r in runs], axis=0).tolist()
             cpu_min = np.min([r.cpu_seconds for r in runs], axis=0)
@@ -368,7 +381,7 @@ def speed(models, n_refinements, n_trials, rng, repeats=3):
     model = models["rock"]
     tol = Tolerance.from_noise(DEFAULT_CONTACT[0] * model.diameter, DEFAULT_CONTACT[1])
     for trial in range(n_trials):
-        robust = fg.ROBUST_KERNELS[trial % 3]
+        robust = ROBUST[trial % 3]
         g = simulate.grasp(model, rng, n=5, where="centroid")
         tri = model.triangles[g.facets]
         p = g.points_object + 1.5 * (tri[:, 0] - g.points_object) * (np.arange(5) >= 2)[:, None]  # 3 outside
@@ -567,8 +580,8 @@ def main(argv=None):
                   default_contact=DEFAULT_CONTACT, prior_noise=PRIOR_NOISE, default_prior=DEFAULT_PRIOR,
                   lm_candidates=LM_CANDIDATES, outlier_frac=OUTLIER_FRAC, outlier_penalty=OUTLIER_PENALTY,
                   rescue_widen=fg.RESCUE_WIDEN, acceptance_objects=ACCEPTANCE_OBJECTS,
-                  fg_k=fg.DEFAULT_K, huber_k=fg.HUBER_K, cauchy_k=fg.CAUCHY_K,
-                  ambiguous_probability=fg.AMBIGUOUS_PROBABILITY, success_adds_frac=SAME_CLASS_ADDS_FRAC,
+                  fg_k=DEFAULT_REFINE, huber_k=fg.HUBER_K, cauchy_k=fg.CAUCHY_K,
+                  ambiguous_probability=AMBIGUOUS_PROBABILITY, success_adds_frac=SAME_CLASS_ADDS_FRAC,
                   **sizes)
     _write_config(os.path.join(args.out, "config.json"), config, args.parts)
     rng = np.random.default_rng(args.seed)

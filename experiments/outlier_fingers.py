@@ -1,4 +1,4 @@
-"""Outlier fingers (issue 9, acceptance "Outlier fingers"): with ``max_outliers=1`` and one
+"""Outlier fingers: with ``max_outliers=1`` and one
 planted bad finger among 5, how often is the top-1 pose right?
 
 Grasps as in experiments/discrimination.py (``simulate.grasp``: contacts area-weighted on the
@@ -56,10 +56,13 @@ from pathlib import Path
 
 import numpy as np
 
-from contactpose import metrics, objects, simulate, sweep
+from contactpose import sweep
 from contactpose.contacts import Contacts
+from contactpose.geometry import metrics
 from contactpose.localize import localize
-from contactpose.model import ObjectModel
+from contactpose.model.object_model import ObjectModel
+from contactpose.sim import grasps as simulate
+from contactpose.sim import objects
 
 NAME = "outlier_fingers"
 #: Results go beside the other parts of the discrimination experiment, prefixed.

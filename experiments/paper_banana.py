@@ -22,9 +22,12 @@ from pathlib import Path
 
 import numpy as np
 
-from contactpose import metrics, objects, simulate, sweep
+from contactpose import sweep
+from contactpose.geometry import metrics
 from contactpose.localize import localize
-from contactpose.model import ObjectModel
+from contactpose.model.object_model import ObjectModel
+from contactpose.sim import grasps as simulate
+from contactpose.sim import objects
 
 NAME = "paper_banana"
 

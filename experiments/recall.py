@@ -1,4 +1,4 @@
-"""Recall of the true facet tuple and top-1 pose success, fast vs paper (issue 3 acceptance).
+"""Recall of the true facet tuple and top-1 pose success, fast vs paper.
 
 For each mesh (banana, carton, rock, rock1k) the script simulates ``--grasps`` random grasps
 (uniform random rotation, translation within ±0.5 diameter; 4 contacts sampled
@@ -21,7 +21,7 @@ error within half the pair tolerance so every pair lies inside it) and records p
   closed-form minimum of eq. 7 (``solver="closed-form"``), on the same subset up to
   ``--cf-max-hypotheses``. Skipped grasps are counted in the summary.
 
-Top-1 success (``contactpose.metrics.pose_success``): rotation error < 5° and translation
+Top-1 success (``contactpose.geometry.metrics.pose_success``): rotation error < 5° and translation
 error < 5 % of the diameter. ``*_top1_adds`` counts symmetric twins as success (ADD-S below
 5 % of the diameter), which matters on the carton.
 
@@ -40,12 +40,15 @@ import time
 
 import numpy as np
 
-from contactpose import objects, simulate, sweep
-from contactpose.contacts import Tolerance, pair_conditions
-from contactpose.hypotheses import TripleTest, admissible_pairs, join_tuples
+from contactpose import sweep
+from contactpose.contacts import Tolerance
+from contactpose.geometry.metrics import SAME_CLASS_ADDS_FRAC, adds, pose_success, rotation_error_deg, translation_error
 from contactpose.localize import localize
-from contactpose.metrics import SAME_CLASS_ADDS_FRAC, adds, pose_success, rotation_error_deg, translation_error
-from contactpose.model import ObjectModel
+from contactpose.model.object_model import ObjectModel
+from contactpose.search.pairs import admissible_pairs, pair_conditions
+from contactpose.search.tree import TripleTest, join_tuples
+from contactpose.sim import grasps as simulate
+from contactpose.sim import objects
 
 MESHES = ("banana", "carton", "rock", "rock1k")
 POSITION_NOISE = 0.0005

@@ -1,4 +1,4 @@
-"""Regenerate every experiment of issue 7: `make results` (full size) or `make results-quick`.
+"""Regenerate every experiment: `make results` (full size) or `make results-quick`.
 
 Runs, in order, paper_banana, noise_sweep, bin_sweep, fingers_sweep, scaling and baselines
 (each its own script's ``main``), afresh unless ``--resume`` is given, and says the expected

@@ -28,9 +28,10 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from contactpose import simulate, sweep
+from contactpose import sweep
 from contactpose.localize import localize
-from contactpose.model import ObjectModel
+from contactpose.model.object_model import ObjectModel
+from contactpose.sim import grasps as simulate
 
 NAME = "scaling"
 PAPER_BANANA = {"m": 53, "offline_ms": 40.0, "online_ms": 116.0}

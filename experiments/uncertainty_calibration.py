@@ -1,4 +1,4 @@
-"""Calibration of the pose uncertainty (issue 5): Laplace covariance versus emcee samples.
+"""Calibration of the pose uncertainty: Laplace covariance versus emcee samples.
 
 For each simulated grasp, the hypothesis with the true facets is refined in the factor graph
 (``refine_hypotheses``, same kernel) and its pose posterior sampled (``uncertainty.sample_pose``,
@@ -45,11 +45,13 @@ import warnings
 import numpy as np
 from scipy.stats import chi2
 
-from contactpose import objects, simulate
-from contactpose import uncertainty as unc
 from contactpose.contacts import Tolerance
-from contactpose.model import ObjectModel
+from contactpose.model.object_model import ObjectModel
+from contactpose.scoring.rank import closed_form_arrays
+from contactpose.sim import grasps as simulate
+from contactpose.sim import objects
 from contactpose.solvers import factor_graph as fg
+from contactpose.uncertainty import sampling as unc
 
 log = logging.getLogger("uncertainty_calibration")
 
@@ -85,7 +87,7 @@ def draw_grasp(model, spec, tol, rng, max_tries=10_000):
 
 def run_grasp(model, g, tol, robust, n_samples, rng):
     """Levels of the truth under the three regions, and the sampler's figures. -> dict or None"""
-    arrays = fg.closed_form_arrays(model, g.contacts, g.facets[None], tol)
+    arrays = closed_form_arrays(model, g.contacts, g.facets[None], tol)
     ref = fg.refine_hypotheses(model, g.contacts, arrays, tol, robust=robust, k=1)
     if not ref.determined[0]:
         return None

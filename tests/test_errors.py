@@ -1,4 +1,4 @@
-"""Bad input gives a ContactPoseError (or a warning) that names the value and the expectation (issue 8).
+"""Bad input gives a ContactPoseError (or a warning) that names the value and the expectation.
 
 One test per case of the issue's list: meshes, contacts files, prior files, model files,
 resource limits, and the CLI's contract (exit code 2, exactly one stderr line, no traceback).
@@ -20,13 +20,15 @@ import pytest
 import trimesh
 
 import contactpose as cp
-from contactpose import cli, io, objects
-from contactpose import model as model_module
+from contactpose import cli
 from contactpose.contacts import Contacts
-from contactpose.errors import (ContactPoseError, ContactsError, MeshError, ModelFileError, PriorError,
-                                ResourceError)
-from contactpose.localize import PosePrior
-from contactpose.model import FORMAT_VERSION, ObjectModel
+from contactpose.errors import ContactPoseError, ContactsError, MeshError, ModelFileError, PriorError, ResourceError
+from contactpose.io import jsonfiles as io
+from contactpose.io import modelfile as model_module
+from contactpose.io.modelfile import FORMAT_VERSION
+from contactpose.model.object_model import ObjectModel
+from contactpose.sim import objects
+from contactpose.types import PosePrior
 
 #: Small bins keep the model files of these tests a few kB.
 SMALL_BINS = (4, 4, 4)
@@ -790,8 +792,8 @@ def test_memory_error_while_reading_a_model_file(box_file, monkeypatch):
 
 def test_saving_over_a_memory_mapped_model_does_not_crash_its_reader(tmp_path):
     script = (
-        "import sys, trimesh; from contactpose import model, objects\n"
-        "model.MMAP_MIN_BYTES = 0\n"
+        "import sys, trimesh; from contactpose import model; from contactpose.io import modelfile; from contactpose.sim import objects\n"
+        "modelfile.MMAP_MIN_BYTES = 0\n"
         "path = sys.argv[1]\n"
         "model.ObjectModel.from_mesh(objects.load('box'), bins=(4, 4, 4)).save(path)\n"
         "loaded = model.ObjectModel.load(path)\n"

@@ -58,10 +58,12 @@ def test_fingers_and_bins_quick_identical_across_runs_and_redrawn(tmp_path):
 
 def test_candidate_count_matches_brute_force():
     """bin_sweep.candidate_count counts exactly the stored pairs whose bins eq. (5) visits."""
-    from contactpose import objects, simulate
-    from contactpose.contacts import Tolerance, pair_conditions
-    from contactpose.model import ObjectModel
-    from contactpose.table import bin_index, query_limits
+    from contactpose.contacts import Tolerance
+    from contactpose.model.object_model import ObjectModel
+    from contactpose.model.table import bin_index, query_limits
+    from contactpose.search.pairs import pair_conditions
+    from contactpose.sim import grasps as simulate
+    from contactpose.sim import objects
 
     bin_sweep = run_all.load("bin_sweep")
     model = ObjectModel.from_mesh(objects.load("box"), bins=(8, 8, 16))
@@ -94,8 +96,10 @@ def test_scaling_meshes_are_closed_rocks_of_20_f2_facets():
 @pytest.mark.parametrize("name", ["banana", "carton"])
 def test_baseline_contact_cost_is_chi2_at_the_true_pose(name):
     """The baselines' likelihood finds each contact's own facet: χ² of 12 dof at the truth."""
-    from contactpose import baselines, objects, simulate
-    from contactpose.model import ObjectModel
+    from contactpose import baselines
+    from contactpose.model.object_model import ObjectModel
+    from contactpose.sim import grasps as simulate
+    from contactpose.sim import objects
 
     model = ObjectModel.from_mesh(objects.load(name))
     surface = baselines.sample_surface(model)
@@ -107,9 +111,12 @@ def test_baseline_contact_cost_is_chi2_at_the_true_pose(name):
 
 
 def test_scaling_series_and_icp_improve_on_a_close_prior():
-    from contactpose import baselines, metrics, objects, simulate
-    from contactpose.localize import PosePrior
-    from contactpose.model import ObjectModel
+    from contactpose import baselines
+    from contactpose.geometry import metrics
+    from contactpose.model.object_model import ObjectModel
+    from contactpose.sim import grasps as simulate
+    from contactpose.sim import objects
+    from contactpose.types import PosePrior
 
     model = ObjectModel.from_mesh(objects.load("banana"))
     surface = baselines.sample_surface(model)

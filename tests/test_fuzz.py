@@ -1,4 +1,4 @@
-"""Fuzzing of the contacts and prior parsers and the model loader (issue 8).
+"""Fuzzing of the contacts and prior parsers and the model loader.
 
 The contract: whatever the input, the outcome is a result or a ContactPoseError.
 Inputs are drawn by hypothesis: arbitrary JSON-like values, mutated valid
@@ -34,10 +34,10 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from contactpose import io
 from contactpose.errors import ContactPoseError
-from contactpose import model as model_module
-from contactpose.model import ObjectModel
+from contactpose.io import jsonfiles as io
+from contactpose.io import modelfile as model_module
+from contactpose.model.object_model import ObjectModel
 
 EXAMPLES = int(os.environ.get("CONTACTPOSE_FUZZ_EXAMPLES", "100"))
 FUZZ = settings(max_examples=EXAMPLES, deadline=None, derandomize=False,

@@ -1,4 +1,4 @@
-"""The online phase (issue 3): contacts and tolerances, the closed-form pose against
+"""The online phase: contacts and tolerances, the closed-form pose against
 references (scipy's Wahba solver, Levenberg–Marquardt on eq. 7, exact data), degenerate
 geometry, ``localize`` statuses and options, invariances, priors, and the recall of the
 true facet tuple.
@@ -10,20 +10,28 @@ import json
 import numpy as np
 import pytest
 import trimesh
+from conftest import NORMAL_NOISE_DEG, POSITION_NOISE
 from scipy.spatial.transform import Rotation
 
-from contactpose import residuals as res
-from contactpose import simulate
-from contactpose.contacts import Contacts, Tolerance, pair_conditions
+from contactpose.contacts import Contacts, Tolerance
 from contactpose.errors import ContactPoseError, ContactsError, PriorError
-from contactpose.hypotheses import TripleTest, admissible_pairs, join_tuples, sorted_rows
-from contactpose.localize import MAX_CLASS_HYPOTHESES, PosePrior, fit_threshold, localize, pose_classes
-from contactpose.metrics import (SAME_CLASS_ADDS_FRAC, adds, adds_many, relative_points, rms_displacement,
-                                 rotation_error_deg)
+from contactpose.geometry.metrics import (
+    SAME_CLASS_ADDS_FRAC,
+    adds,
+    adds_many,
+    relative_points,
+    rms_displacement,
+    rotation_error_deg,
+)
+from contactpose.localize import localize
+from contactpose.scoring.classes import MAX_CLASS_HYPOTHESES, pose_classes
+from contactpose.search.pairs import admissible_pairs, pair_conditions
+from contactpose.search.tree import TripleTest, join_tuples, sorted_rows
+from contactpose.sim import grasps as simulate
+from contactpose.solvers import residuals as res
 from contactpose.solvers.closed_form import fit_poses, wahba
 from contactpose.solvers.lm import eq7_residuals, fit_lm
-
-from conftest import NORMAL_NOISE_DEG, POSITION_NOISE
+from contactpose.types import PosePrior, fit_threshold
 
 NOISE = dict(position_noise=POSITION_NOISE, normal_noise_deg=NORMAL_NOISE_DEG)
 
@@ -580,7 +588,7 @@ def recall_grasps(model, seed):
 # observed, so its recall is judged on patch tuples (test_recall_patch_level_carton).
 @pytest.mark.parametrize("name", ["banana", "rock"])
 def test_recall_of_true_tuple_fast_is_complete(models, name):
-    """Issue 3 acceptance (quick version), models searched by facets: bounded noise inside the
+    """Recall (quick version), models searched by facets: bounded noise inside the
     tolerance, random poses, area-weighted contacts: the true facet tuple is always found."""
     assert models[name].patch_table is None
     model = models[name]

@@ -1,4 +1,4 @@
-"""Property-based tests of the online phase and the model file (issue 8), with hypothesis.
+"""Property-based tests of the online phase and the model file, with hypothesis.
 
 * rigid-motion equivariance: moving all contacts by T moves every well-determined
   hypothesis, and the best estimate, by T;
@@ -33,9 +33,10 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 import contactpose as cp
-from contactpose import objects, simulate
 from contactpose.contacts import Contacts
-from contactpose.model import ObjectModel
+from contactpose.model.object_model import ObjectModel
+from contactpose.sim import grasps as simulate
+from contactpose.sim import objects
 
 EXAMPLES = int(os.environ.get("CONTACTPOSE_PROPERTY_EXAMPLES", "12"))
 PROPERTY = settings(max_examples=EXAMPLES, deadline=None,

@@ -24,7 +24,8 @@ def draw_task(settings, rng, *, scale=1.0):
 def localize_task(settings, rng):
     """A real cell: simulate a grasp on a small mesh and localize it."""
     import contactpose as cp
-    from contactpose import metrics, simulate
+    from contactpose.geometry import metrics
+    from contactpose.sim import grasps as simulate
 
     def build():
         import trimesh

@@ -7,15 +7,15 @@ import json
 import numpy as np
 import pytest
 import trimesh
+from conftest import NORMAL_NOISE_DEG, POSITION_NOISE
 
-from contactpose import simulate
 from contactpose import touch as T
+from contactpose.cli import next_touch
 from contactpose.contacts import Contacts
 from contactpose.errors import ContactPoseError
 from contactpose.localize import localize
-from contactpose.residuals import lateral_residuals, offset_residuals, to_object_frame
-
-from conftest import NORMAL_NOISE_DEG, POSITION_NOISE
+from contactpose.sim import grasps as simulate
+from contactpose.solvers.residuals import lateral_residuals, offset_residuals, to_object_frame
 
 NOISE = dict(position_noise=POSITION_NOISE, normal_noise_deg=NORMAL_NOISE_DEG)
 
@@ -184,7 +184,7 @@ def test_next_touch_cli(box_model, tmp_path, capsys):
     path = tmp_path / "contacts.json"
     path.write_text(json.dumps(g.contacts.to_dict()))
     parser = argparse.ArgumentParser(prog="contactpose")
-    T.register_cli(parser.add_subparsers(dest="command", required=True))
+    next_touch.register(parser.add_subparsers(dest="command", required=True))
     out = tmp_path / "touch.json"
     args = parser.parse_args(["next-touch", "box", "--contacts", str(path), "--position-noise", "0.0005",
                               "--candidates", "50", "--seed", "1", "-o", str(out)])

@@ -1,4 +1,4 @@
-"""Closed-form pose of every hypothesis at once (NOTES.md, "Structure of the problem").
+"""Closed-form pose of every hypothesis at once (research/design.md, "Poses").
 
 The rotation enters only the normal term of the cost: R solves Wahba's problem,
 aligning the facet normals n_k with the measured object normals -ñ_i (SVD with
@@ -15,50 +15,11 @@ reference translation t0 along them.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
-
 import numba
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-
-@dataclass
-class PoseFit:
-    """Poses of H hypotheses with their degenerate directions.
-
-    R : (H, 3, 3); t : (H, 3);
-    free_translation : (H, 3, 3) rows are world unit directions, valid where
-    free_translation_mask : (H, 3) bool; free_rotation : (H, 3) world axis, valid
-    where free_rotation_mask : (H,) bool.
-    """
-
-    R: np.ndarray
-    t: np.ndarray
-    free_translation: np.ndarray
-    free_translation_mask: np.ndarray
-    free_rotation: np.ndarray
-    free_rotation_mask: np.ndarray
-
-    def take(self, idx):
-        """The fits of the hypotheses ``idx``."""
-        return PoseFit(*(getattr(self, f.name)[idx] for f in fields(self)))
-
-    def concat(self, other):
-        """Both sets of fits, self's first."""
-        return PoseFit(*(np.concatenate([getattr(self, f.name), getattr(other, f.name)]) for f in fields(self)))
-
-    @property
-    def underdetermined(self):
-        """(H,) bool: a pose family, not one pose."""
-        return self.free_translation_mask.any(axis=1) | self.free_rotation_mask
-
-    def poses(self):
-        """(H, 4, 4) T_world_object."""
-        T = np.zeros((len(self.R), 4, 4))
-        T[:, :3, :3] = self.R
-        T[:, :3, 3] = self.t
-        T[:, 3, 3] = 1.0
-        return T
+from contactpose.types import PoseFit
 
 
 def fit_poses(obj_normals, obj_offsets, points, finger_normals, *, cost="invariant",

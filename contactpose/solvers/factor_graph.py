@@ -4,10 +4,10 @@ robust kernels, marginal covariances and hypothesis probabilities.
 One ``Pose3`` variable per hypothesis: T_world_object. Its graph holds
 
 * one batched contact factor (a ``gtsam.CustomFactor`` over all n contacts) whose error
-  is exactly the residuals of :mod:`contactpose.residuals`, whitened by the sensor noise:
+  is exactly the residuals of :mod:`contactpose.solvers.residuals`, whitened by the sensor noise:
   ``[r_n / σ_n (3n: x, y, z of contact 0, then 1, ...), r_o / σ_x (n), r_l / σ_x (n,
   point_to_facet only)]``;
-* optionally a ``PriorFactorPose3`` from a :class:`~contactpose.localize.PosePrior`.
+* optionally a ``PriorFactorPose3`` from a :class:`~contactpose.types.PosePrior`.
 
 Jacobians are analytic, in GTSAM's tangent order and convention: rotation first, right
 perturbation ``T ⊕ ξ = T · Exp(ξ)``, ``ξ = (ω, v)``, so to first order ``R' = R (I + [ω]×)``
@@ -66,9 +66,6 @@ A hypothesis whose normals leave pose directions free (and no prior) has no Gaus
 posterior: its covariance and log-evidence are NaN and it gets probability 0 (all NaN
 when no refined hypothesis is determined).
 
-Ambiguity (:func:`ambiguous`): "ambiguous" when hypotheses that are a distinct pose from the
-most probable one (ADD-S > SAME_CLASS_ADDS_FRAC · diameter) hold more than
-AMBIGUOUS_PROBABILITY (5 %) of the probability.
 """
 
 from __future__ import annotations
@@ -77,29 +74,25 @@ import logging
 import time
 from dataclasses import dataclass
 from functools import partial
-from typing import NamedTuple
 
 import gtsam
 import numpy as np
 from numba import njit
 from scipy.spatial.transform import Rotation
 
-from contactpose import residuals as res
-from contactpose.errors import ContactPoseError
-from contactpose.geometry import closest_point_triangle, point_triangle_distance
+from contactpose.contacts import Contacts
+from contactpose.errors import ContactPoseError, check_count
+from contactpose.geometry.kernels import closest_point_triangle, point_triangle_distance
+from contactpose.model.patches import nearest_members
+from contactpose.solvers import residuals as res
 from contactpose.solvers.closed_form import wahba
+from contactpose.types import DEFAULT_REFINE, ROBUST, HypothesisArrays, PosePrior, outlier_penalty
 
 log = logging.getLogger(__name__)
 
-ROBUST_KERNELS = ("huber", "cauchy", "none")
 #: Kernel width on the norm of a contact's whitened block: sqrt(χ²₃(0.95)).
 HUBER_K = 2.7954834829151074
 CAUCHY_K = 2.7954834829151074
-#: Refine this many hypotheses by default (0: all).
-DEFAULT_K = 20
-#: "ambiguous" when the probability of hypotheses that are a distinct pose from the best
-#: (ADD-S above SAME_CLASS_ADDS_FRAC of the diameter) exceeds this.
-AMBIGUOUS_PROBABILITY = 0.05
 #: A lateral residual below this fraction of σ_x counts as 0 (rounding of the face projection).
 LATERAL_ZERO_REL = 1e-9
 #: χ²₃ quantile at 1 - 1e-9: a hypothesis whose rotation disagrees more with the prior's is
@@ -265,8 +258,8 @@ def pack_contacts(model, contacts, facets):
 def kernel_params(tolerance, robust="none", point_to_facet=True):
     """(6,) float64 factor settings: 1/σ_n, 1/σ_x, kernel width k, the r_l zero, point-to-facet
     (0/1), kernel code (0 none, 1 Huber, 2 Cauchy)."""
-    if robust not in ROBUST_KERNELS:
-        raise ContactPoseError(f"robust must be one of {ROBUST_KERNELS}, got {robust!r}")
+    if robust not in ROBUST:
+        raise ContactPoseError(f"robust must be one of {ROBUST}, got {robust!r}")
     k = {"huber": HUBER_K, "cauchy": CAUCHY_K, "none": 0.0}[robust]
     return np.array([1.0 / tolerance.normal_noise, 1.0 / tolerance.position_noise, k,
                      LATERAL_ZERO_REL * tolerance.position_noise, float(bool(point_to_facet)),
@@ -393,30 +386,6 @@ def prior_mahalanobis2(R, t, prior):
     return np.einsum("hi,ij,hj->h", xi, np.linalg.inv(prior.covariance_matrix()), xi)
 
 
-def closed_form_arrays(model, contacts, facets, tolerance):
-    """HypothesisArrays of given facet tuples, closed-form fitted and ranked like ``localize``
-    (method "fast"): for tuples found some other way (the true tuple, outlier handling).
-
-    facets : (H, n) int  ->  HypothesisArrays, best χ² first
-    """
-    from contactpose.localize import HypothesisArrays
-    from contactpose.solvers.closed_form import fit_poses
-
-    facets = np.asarray(facets, dtype=np.int64).reshape(-1, contacts.n)
-    normals = model.planes.normals[facets]
-    offsets = model.planes.offsets[facets]
-    fit = fit_poses(normals, offsets, contacts.points, contacts.finger_normals, cost="invariant",
-                    angle_tol=tolerance.angle, centroids=model.centroids[facets])
-    r_n = res.normal_residuals(fit.R, normals, contacts.finger_normals)
-    p_obj = res.to_object_frame(fit.R, fit.t, contacts.points)
-    r_o = res.offset_residuals(p_obj, normals, offsets)
-    r_l = res.lateral_residuals(p_obj, model.triangles[facets], r_o)
-    chi2 = res.whitened_cost(r_n, r_o, r_l, tolerance.normal_noise, tolerance.position_noise)
-    residual = np.concatenate([r_n, r_o[..., None], r_l[..., None]], axis=2)
-    arrays = HypothesisArrays(facets, fit.poses(), chi2, chi2, residual, fit)
-    return arrays.take(np.argsort(chi2, kind="stable"))
-
-
 # ------------------------------------------------------------- refinement ---
 
 @dataclass
@@ -478,7 +447,7 @@ def normalise(log_evidence):
     return p
 
 
-def refine_hypotheses(model, contacts, arrays, tolerance, *, prior=None, robust="huber", k=DEFAULT_K,
+def refine_hypotheses(model, contacts, arrays, tolerance, *, prior=None, robust="huber", k=DEFAULT_REFINE,
                       point_to_facet=True, params=None):
     """Refine the best k hypotheses in a GTSAM factor graph and score them.
 
@@ -557,8 +526,6 @@ def nearest_facets(model, contacts, facets, poses):
     labels = None if patches is None else patches.labels[np.maximum(facets, 0)]
     if patches is None or not np.any(np.diff(patches.indptr)[labels] > 1):
         return facets  # no patches, or every contact's patch is a single facet
-    from contactpose.patches import nearest_members
-
     p_obj = res.to_object_frame(poses[:, :3, :3], poses[:, :3, 3], contacts.points)
     return np.where(facets >= 0, nearest_members(patches, model.triangles, labels, p_obj), -1)
 
@@ -660,26 +627,6 @@ def _contact_chi2(model, contacts, facets, poses, tolerance, point_to_facet):
     return res.whitened_cost(r_n, r_o, r_l, tolerance.normal_noise, tolerance.position_noise)
 
 
-def hypothesis_arrays(model, contacts, refinement, fit, tolerance):
-    """A Refinement as localize's HypothesisArrays, in its order (most probable first).
-
-    fit : PoseFit of the refined rows (its free directions are kept; R, t become the refined
-    poses). residuals (K, n, 5) as in ``localize`` (NaN for an unassigned finger); chi2 the
-    plain χ² plus :func:`outlier_penalty`; cost = -log_evidence (+inf when undetermined).
-    """
-    from contactpose.localize import HypothesisArrays
-
-    facets, poses = refinement.facets, refinement.poses
-    r_n, r_o, r_l, ok = _residuals(model, contacts, facets, poses, True)
-    chi2 = res.whitened_cost(r_n, r_o, r_l, tolerance.normal_noise, tolerance.position_noise)
-    residual = np.concatenate([r_n, r_o[..., None], r_l[..., None]], axis=2)
-    residual[~ok] = np.nan
-    fit.R, fit.t = poses[:, :3, :3], poses[:, :3, 3]
-    cost = -np.nan_to_num(refinement.log_evidence, nan=-np.inf)
-    return HypothesisArrays(facets, poses, cost, chi2 + outlier_penalty(facets), residual, fit,
-                            refinement.covariance, refinement.probability)
-
-
 def nearest_fit_facets(model, contacts, pose, tolerance):
     """Each contact's best facet under a pose: least whitened point-to-triangle distance²
     plus normal residual². pose : (4, 4) -> (n,) int (valid facets only)"""
@@ -693,14 +640,6 @@ def nearest_fit_facets(model, contacts, pose, tolerance):
     return valid[np.argmin(cost, axis=1)]
 
 
-def outlier_penalty(facets):
-    """χ² charged for the unassigned fingers (facet -1) of each row: localize's OUTLIER_PENALTY
-    each, so that leaving a finger out never beats assigning it within noise. (H, n) -> (H,)"""
-    from contactpose.localize import OUTLIER_PENALTY
-
-    return OUTLIER_PENALTY * np.sum(np.asarray(facets) < 0, axis=-1)
-
-
 def _empty(n, robust, prior):
     z = np.zeros(0)
     return Refinement(np.zeros(0, int), np.zeros((0, n), int), np.zeros((0, 4, 4)), np.zeros((0, 4, 4)),
@@ -709,13 +648,9 @@ def _empty(n, robust, prior):
 
 
 def _check(model, contacts, arrays, tolerance, prior, robust, k):
-    from contactpose.contacts import Contacts
-    from contactpose.localize import HypothesisArrays, PosePrior
-
-    if robust not in ROBUST_KERNELS:
-        raise ContactPoseError(f"robust must be one of {ROBUST_KERNELS}, got {robust!r}")
-    if not (isinstance(k, (int, np.integer)) and not isinstance(k, bool) and k >= 0):
-        raise ContactPoseError(f"k must be a non-negative integer (0: all), got {k!r}")
+    if robust not in ROBUST:
+        raise ContactPoseError(f"robust must be one of {ROBUST}, got {robust!r}")
+    check_count(k, "k", minimum=0)
     if not isinstance(contacts, Contacts):
         raise ContactPoseError(f"contacts must be a contactpose.Contacts, got {type(contacts).__name__}")
     if not isinstance(arrays, HypothesisArrays):
@@ -727,45 +662,3 @@ def _check(model, contacts, arrays, tolerance, prior, robust, k):
         raise ContactPoseError(f"arrays.facets must have shape (H, {contacts.n}), got {facets.shape}")
     if len(facets) and (facets.min() < -1 or facets.max() >= model.num_facets):
         raise ContactPoseError(f"arrays.facets must index the model's {model.num_facets} facets (-1: unassigned)")
-
-
-# -------------------------------------------------------------- ambiguity ---
-
-class Ambiguity(NamedTuple):
-    """ambiguous : bool; distinct_probability : mass of hypotheses distinct from the best;
-    runner_up : position in the Refinement of the most probable distinct one, or None."""
-
-    ambiguous: bool
-    distinct_probability: float
-    runner_up: int | None
-
-
-def ambiguous(model, refinement, *, threshold=AMBIGUOUS_PROBABILITY):
-    """Whether the refined hypotheses leave a distinct pose class with real probability.
-
-    A hypothesis is distinct from the best when ADD-S(T_j, T_best) > SAME_CLASS_ADDS_FRAC ·
-    diameter (so symmetric twins of the best count with it). "ambiguous" when the summed
-    probability of distinct hypotheses exceeds ``threshold`` (default 0.05); with two
-    hypotheses this is "the second is a distinct pose with probability above 5 %".
-    Hypotheses are visited most probable first and the scan stops once the answer is
-    fixed, so few ADD-S evaluations are needed.
-    """
-    from contactpose.metrics import SAME_CLASS_ADDS_FRAC, adds
-
-    if not (0.0 <= threshold < 1.0):
-        raise ContactPoseError(f"threshold must be in [0, 1), got {threshold!r}")
-    p = refinement.probability
-    if len(p) < 2:
-        return Ambiguity(False, 0.0, None)
-    limit = SAME_CLASS_ADDS_FRAC * model.diameter
-    distinct, runner_up, remaining = 0.0, None, float(p[1:].sum())
-    for j in range(1, len(p)):
-        if distinct > threshold or distinct + remaining <= threshold:
-            break
-        remaining -= p[j]
-        if p[j] <= 0.0:
-            continue
-        if adds(refinement.poses[j], refinement.poses[0], model.surface_points, model.surface_tree) > limit:
-            distinct += float(p[j])
-            runner_up = j if runner_up is None else runner_up
-    return Ambiguity(distinct > threshold, distinct, runner_up)

@@ -1,0 +1,62 @@
+"""``contactpose build-model``: a contact model (.npz) from a mesh, a built-in object or a point cloud."""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+
+from contactpose.cli.common import model_or_mesh
+from contactpose.model import ObjectModel
+
+log = logging.getLogger("contactpose")
+
+
+def register(sub):
+    p = sub.add_parser("build-model", help="build a contact model (.npz) from a mesh or a point cloud")
+    p.add_argument("mesh", help="mesh file (STL, OBJ, PLY, OFF, GLB), point cloud file (PLY without faces, "
+                                "PCD, XYZ, NPY; meshed first with the scan options) or a built-in object name")
+    p.add_argument("-o", "--output", help="output .npz (default: MESH name with .npz)")
+    p.add_argument("--bins", nargs=3, type=int, metavar="P", help="bins p_dmax p_dmin p_alpha")
+    p.add_argument("--bounds", choices=("exact", "paper"), default="exact")
+    p.add_argument("--fix-normals", action="store_true", help="re-wind faces consistently outward (trimesh repair)")
+    p.add_argument("--max-span", type=float, help="hand span L: store only facet pairs closer than L (mesh units)")
+    p.set_defaults(func=run)
+    try:  # Open3D present: a point cloud is meshed first (contactpose scan), with the same options
+        from contactpose.cli import scan
+
+        p.add_argument("--save-mesh", metavar="MESH", help="point cloud input: also write the reconstructed mesh")
+        scan.add_scan_options(p, prefix="scan-")
+    except ImportError as exc:
+        log.debug("build-model takes meshes only: %s", exc)
+
+
+def run(args):
+    """Build, save and describe the model; 0 on success."""
+    scanned = None
+    if getattr(args, "scan_prefix", None) is not None:  # scan options registered: clouds are accepted
+        from contactpose.cli import scan
+
+        scanned = scan.scan_if_cloud(args.mesh, args)  # None unless MESH is a point cloud file
+    if scanned is not None:
+        print(scanned.report.format())
+        if args.save_mesh:
+            scan.write_mesh(scanned.mesh, args.save_mesh)
+            print(f"mesh: {args.save_mesh}")
+    start = time.perf_counter()
+    if scanned is None:
+        model = model_or_mesh(args.mesh, bins=args.bins, bounds=args.bounds, fix_normals=args.fix_normals,
+                              max_span=args.max_span)
+    else:
+        kwargs = {k: v for k, v in (("bins", args.bins), ("bounds", args.bounds)) if v is not None}
+        model = ObjectModel.from_mesh(scanned.mesh, fix_normals=args.fix_normals, max_span=args.max_span, **kwargs)
+    seconds = time.perf_counter() - start
+    out = args.output or os.path.splitext(os.path.basename(args.mesh))[0] + ".npz"
+    model.save(out)
+    d = model.describe()
+    print(f"facets: {d['facets']} ({d['degenerate_facets']} degenerate, excluded)")
+    print(f"ordered pairs: {d['ordered_pairs']}")
+    print(f"build time: {seconds * 1000:.1f} ms (features {model.build_seconds['features'] * 1000:.1f} ms, "
+          f"table {model.build_seconds['table'] * 1000:.1f} ms)")
+    print(f"file: {out} ({os.path.getsize(out) / 1024:.1f} KiB)")
+    return 0

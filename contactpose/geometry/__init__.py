@@ -1,0 +1,1 @@
+"""Geometry below the method: exact distance kernels (numba), pose metrics, the raycaster."""

@@ -1,0 +1,525 @@
+"""The object model: facet planes of a triangle mesh (paper §2, eq. 2) and its pair table.
+
+Facet indices are the face order of the mesh as loaded by
+``trimesh.load(path, force="mesh", process=False)``. Degenerate facets are
+reported, marked invalid and left out of the pair table; the others keep
+their indices.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+import time
+import warnings
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import numpy as np
+import trimesh
+
+from contactpose import tol
+from contactpose.errors import ContactPoseError, MeshError, ModelFileError
+from contactpose.io.modelfile import (
+    FORMAT_VERSION,
+    STORED_MODEL,
+    check_arrays,
+    check_version,
+    content_hash,
+    prefixed,
+    read_npz,
+    write_replacing,
+)
+from contactpose.model.features import NearPairs, PairFeatures, pair_features
+from contactpose.model.patches import Patches, PatchPairs, find_patches
+from contactpose.model.table import DEFAULT_BINS, STORED_BYTES_PER_PAIR, PairTable, check_bins, check_memory
+
+log = logging.getLogger(__name__)
+
+#: Default patch tolerance: half the default normal noise of 1°, so a patch is flatter
+#: than the sensor can tell apart (research/design.md).
+DEFAULT_PATCH_TOL_DEG = 0.5
+#: facet_pairs="auto" drops the facet-level table above this size when patches serve.
+FACET_TABLE_AUTO_BYTES = 512 * 2**20
+BOUNDS = ("exact", "paper")
+#: Pose classes measure ADD-S on at most this many surface points (localize.same_placement):
+#: a mean over 256 points moves by under 0.4 % of the diameter against all of them (measured
+#: on six built-in objects), and the 5 % class threshold is a convention, not a measurement.
+CLASS_POINTS = 256
+
+
+@dataclass(frozen=True)
+class FacetPlanes:
+    """Unit outward normals and plane offsets of m facets (eq. 2, erratum 1).
+
+    normals : (m, 3) float, offsets : (m,) float with nᵀx + d = 0 on the plane,
+    areas : (m,) float, valid : (m,) bool (False for degenerate facets).
+    """
+
+    normals: np.ndarray
+    offsets: np.ndarray
+    areas: np.ndarray
+    valid: np.ndarray
+
+
+def facet_planes(triangles, diameter):
+    """Planes of facets (eq. 2) with the normal made a unit vector (erratum 1).
+
+    triangles : (m, 3, 3) float; diameter : float, sets the degeneracy scale.
+    A facet is degenerate when its area or its shortest altitude is near zero.
+    """
+    cross = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
+    double_area = np.linalg.norm(cross, axis=1)
+    longest_edge = np.max(
+        np.linalg.norm(triangles - np.roll(triangles, 1, axis=1), axis=2), axis=1
+    )
+    # altitude onto the longest edge = 2·area / longest edge
+    altitude = np.divide(double_area, longest_edge, out=np.zeros_like(double_area), where=longest_edge > 0)
+    valid = (0.5 * double_area > tol.AREA_REL * diameter**2) & (altitude > tol.ALTITUDE_REL * diameter)
+    normals = np.zeros_like(cross)
+    normals[valid] = cross[valid] / double_area[valid, None]
+    offsets = -np.einsum("ij,ij->i", normals, triangles[:, 0])
+    return FacetPlanes(normals, offsets, 0.5 * double_area, valid)
+
+
+def load_mesh(source):
+    """Load a mesh with trimesh, keeping the file's face order (``process=False``).
+
+    source : path or trimesh.Trimesh. Returns (vertices (V, 3) float, faces (m, 3) int).
+    """
+    if isinstance(source, trimesh.Trimesh):
+        mesh = source
+    else:
+        path = os.fspath(source)
+        if not os.path.isfile(path):
+            raise MeshError(f"mesh file {path!r} does not exist or is not a file")
+        mesh = _read_mesh_file(path)
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    faces = np.asarray(mesh.faces, dtype=np.int64)
+    return check_mesh_arrays(vertices, faces)
+
+
+def _read_mesh_file(path):
+    """trimesh.Trimesh of a mesh file with at least one face, else MeshError naming the file."""
+    try:
+        mesh = trimesh.load(path, force="mesh", process=False)
+    except Exception as exc:  # trimesh raises many types for unreadable files
+        raise MeshError(f"cannot read {path!r} as a mesh: {exc}") from None
+    if not isinstance(mesh, trimesh.Trimesh):
+        raise MeshError(f"{path!r} holds no triangle mesh (got {type(mesh).__name__})")
+    if len(mesh.faces) == 0:  # trimesh reads text or random bytes named .stl/.obj as an empty mesh
+        raise MeshError(f"cannot read {path!r} as a mesh: it has no faces (a mesh needs faces of shape "
+                        f"(m, 3) with m >= 1, got shape {np.shape(mesh.faces)})")
+    return mesh
+
+
+def check_mesh_arrays(vertices, faces):
+    """Validate vertex and face arrays; raise MeshError naming what is wrong."""
+    if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
+        raise MeshError(f"mesh needs faces of shape (m, 3) with m >= 1, got shape {faces.shape}")
+    if vertices.ndim != 2 or vertices.shape[1] != 3:
+        raise MeshError(f"mesh needs vertices of shape (V, 3), got shape {vertices.shape}")
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        raise MeshError(
+            f"face indices must lie in [0, {len(vertices) - 1}], got range [{faces.min()}, {faces.max()}]"
+        )
+    bad = ~np.isfinite(vertices).all(axis=1)
+    if bad.any():
+        raise MeshError(
+            f"mesh has {bad.sum()} non-finite vertices (NaN or inf), first at index {np.flatnonzero(bad)[0]}"
+        )
+    return vertices, faces
+
+
+def mesh_diameter(vertices):
+    """Largest distance between two vertices, via the convex hull. vertices : (V, 3)."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    pts = vertices
+    if len(vertices) > 500:
+        try:
+            pts = vertices[ConvexHull(vertices).vertices]
+        except (QhullError, ValueError):
+            pass  # flat vertex sets: fall back to all vertices
+    if len(pts) > 4000:
+        pts = pts[:: len(pts) // 4000 + 1]
+    diff = pts[:, None, :] - pts[None, :, :]
+    return float(np.sqrt(np.max(np.einsum("ijk,ijk->ij", diff, diff))))
+
+
+def merged_mesh(vertices, faces):
+    """A trimesh copy with coincident vertices merged (face order kept), for topology."""
+    merged = trimesh.Trimesh(vertices, faces, process=False)
+    merged.merge_vertices()
+    return merged
+
+
+def winding_report(merged):
+    """Check face winding of a vertex-merged mesh. A message if normals look inward or
+    inconsistent, else None."""
+    if not merged.is_winding_consistent:
+        return "face winding is inconsistent between neighbouring facets"
+    if merged.is_watertight and merged.volume < 0:
+        return "facet normals point inward (closed mesh with negative volume)"
+    return None
+
+
+def rewind_outward(vertices, faces):
+    """Faces re-wound consistently outward with trimesh's repair, in the same order.
+
+    vertices : (V, 3), faces : (m, 3) int  ->  faces (m, 3) int, with flipped faces'
+    last two indices swapped (facet indices are unchanged).
+    """
+    merged = merged_mesh(vertices, faces)
+    before = _face_cross(merged)
+    trimesh.repair.fix_normals(merged)
+    # recomputed from the faces: Trimesh.invert() leaves the cached face_normals as they were
+    flipped = np.einsum("ij,ij->i", before, _face_cross(merged)) < 0
+    fixed = faces.copy()
+    fixed[flipped] = fixed[flipped][:, [0, 2, 1]]
+    return fixed
+
+
+def _face_cross(mesh):
+    """(m, 3) float: unnormalised facet normals of a trimesh, from its current faces."""
+    t = mesh.vertices[mesh.faces]
+    return np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+
+
+def mesh_hash(vertices, faces):
+    """SHA-256 of the vertex and face arrays, as stored (float64, int64)."""
+    digest = hashlib.sha256()
+    digest.update(np.ascontiguousarray(vertices, dtype=np.float64).tobytes())
+    digest.update(np.ascontiguousarray(faces, dtype=np.int64).tobytes())
+    return digest.hexdigest()
+
+
+@dataclass
+class ObjectModel:
+    """A mesh refined for contact search: facet planes, pair features and the table K3.
+
+    Build with :meth:`from_mesh`, persist with :meth:`save` / :meth:`load`.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    planes: FacetPlanes
+    table: PairTable
+    bounds: str
+    diameter: float
+    mesh_hash: str
+    build_seconds: dict = field(default_factory=dict)
+    patches: Patches | None = None
+    patch_table: PairTable | None = None
+
+    # ----------------------------------------------------------------- build
+    @classmethod
+    def from_mesh(cls, mesh, *, bins=DEFAULT_BINS, bounds="exact", progress=None, fix_normals=False,
+                  max_span=None, patch_tol_deg=DEFAULT_PATCH_TOL_DEG, facet_pairs="auto"):
+        """Build the model of a mesh (§3.1).
+
+        mesh : path or trimesh.Trimesh; bins : (p_dmax, p_dmin, p_alpha) bin counts;
+        bounds : "exact" (triangle–triangle Δmin) or "paper" (vertex-only Δmin);
+        progress : show a progress bar (default: only on a terminal, for large models);
+        fix_normals : re-wind faces consistently outward first (face order is kept);
+        max_span : the hand's span L in length units: only pairs with Δmin <= L are stored,
+        found with a spatial index (None: all pairs);
+        patch_tol_deg : connected facets whose normals are within this angle of a patch's
+        first facet form one patch for the default method's search (0: exactly coplanar;
+        None: no patches). Default: half the default normal noise;
+        facet_pairs : keep the facet-level pair table, which the paper's method needs
+        (True, False, or "auto": keep it unless patches serve the default method and the
+        facet table would exceed FACET_TABLE_AUTO_BYTES).
+        """
+        if bounds not in BOUNDS:
+            raise MeshError(f"bounds must be one of {BOUNDS}, got {bounds!r}")
+        bins = check_bins(bins)
+        start = time.perf_counter()
+        vertices, faces = load_mesh(mesh)
+        if fix_normals:
+            faces = rewind_outward(vertices, faces)
+        triangles = vertices[faces]
+        diameter = mesh_diameter(vertices)
+        if not diameter > 0:
+            raise MeshError("mesh has zero extent (all vertices coincide)")
+        planes = facet_planes(triangles, diameter)
+        merged = merged_mesh(vertices, faces)
+        _report_facets(planes, merged)
+        max_span = _check_span(max_span)
+        pair_count = _pair_count(triangles, planes, max_span)
+        patches = _find_patches(merged, planes, bounds, patch_tol_deg)
+        keep = _keep_facet_pairs(facet_pairs, patches, pair_count)
+        patch_pairs = PatchPairs(triangles, planes, patches, diameter, max_span) if _serves(patches) else None
+        check_memory(pair_count if keep else 0, len(faces), max_span, 0 if patch_pairs is None else patch_pairs.count)
+        t_planes = time.perf_counter()
+        patch_table = None if patch_pairs is None else PairTable.build(patch_pairs.features(progress), bins, max_span)
+        del patch_pairs
+        t_patches = time.perf_counter()
+        features = pair_features(triangles, planes, bounds=bounds, progress=progress, max_span=max_span) if keep else None
+        t_features = time.perf_counter()
+        table = PairTable.build(features, bins, max_span) if keep else None
+        t_table = time.perf_counter()
+        seconds = {
+            "planes": t_planes - start,
+            "patches": t_patches - t_planes,
+            "features": t_features - t_patches,
+            "table": t_table - t_features,
+            "total": t_table - start,
+        }
+        return cls(vertices, faces, planes, table, bounds, diameter,
+                   mesh_hash(vertices, faces), seconds, patches, patch_table)
+
+    # ------------------------------------------------------------ properties
+    @property
+    def num_facets(self):
+        """Number of facets m, degenerate ones included (indices are the file's)."""
+        return len(self.faces)
+
+    @property
+    def features(self):
+        """PairFeatures of the unordered valid facet pairs, in table order."""
+        return self.facet_table().features
+
+    def facet_table(self):
+        """The facet-level table K3; ModelFileError if the model was built without it."""
+        if self.table is None:
+            raise ModelFileError("this model was built without facet pairs (facet_pairs=False, or 'auto' for a "
+                                 "large model); the paper's method needs them: rebuild with facet_pairs=True")
+        return self.table
+
+    @property
+    def num_pairs(self):
+        """Ordered facet pairs the facet table answers for (k = l included); patch pairs without it."""
+        return (self.patch_table if self.table is None else self.table).features.num_ordered
+
+    @cached_property
+    def triangles(self):
+        """(m, 3, 3) float: the facet vertices in the object frame."""
+        return self.vertices[self.faces]
+
+    @cached_property
+    def centroids(self):
+        """(m, 3) float: facet centroids in the object frame."""
+        return self.triangles.mean(axis=1)
+
+    @cached_property
+    def facet_radii(self):
+        """(m,) float: distance from each facet's centroid to its farthest vertex."""
+        return np.linalg.norm(self.triangles - self.centroids[:, None], axis=2).max(axis=1)
+
+    @cached_property
+    def surface_points(self):
+        """(N, 3) float: vertices and centroids of valid facets, for ADD-S (about 1,000 at most)."""
+        valid = self.planes.valid
+        pts = np.concatenate([self.vertices[np.unique(self.faces[valid])], self.centroids[valid]])
+        return pts[:: max(1, len(pts) // 1000)]
+
+    @cached_property
+    def class_points(self):
+        """(<= CLASS_POINTS, 3) float: an even subset of :attr:`surface_points`, the points
+        whose ADD-S groups pose classes (their nearest points come from all surface points)."""
+        p = self.surface_points
+        return p[:: -(-len(p) // CLASS_POINTS)]
+
+    @cached_property
+    def class_moments(self):
+        """(mean (3,), E[p pᵀ] (3, 3)) of :attr:`class_points`, for metrics.rms_displacement."""
+        p = self.class_points
+        return p.mean(axis=0), p.T @ p / len(p)
+
+    @cached_property
+    def surface_tree(self):
+        """scipy cKDTree over :attr:`surface_points`."""
+        from scipy.spatial import cKDTree
+
+        return cKDTree(self.surface_points)
+
+    @property
+    def bins(self):
+        return (self.patch_table if self.table is None else self.table).bins
+
+    # ----------------------------------------------------------- persistence
+    def save(self, path):
+        """Write the model to one ``.npz`` (no pickle). Returns the path written.
+
+        The file is written beside ``path`` and renamed over it, so a process that has
+        the old file memory-mapped keeps its contents."""
+        path = os.fspath(path)
+        arrays = {
+            "format_version": np.array(FORMAT_VERSION),
+            "mesh_hash": np.array(self.mesh_hash),
+            "bounds": np.array(self.bounds),
+            "diameter": np.array(self.diameter),
+            "vertices": self.vertices,
+            "faces": self.faces,
+            "normals": self.planes.normals,
+            "offsets": self.planes.offsets,
+            "areas": self.planes.areas,
+            "valid": self.planes.valid,
+        }
+        if self.table is not None:
+            arrays.update({f"features_{k}": v for k, v in self.features.to_arrays().items()})
+            arrays.update({f"table_{k}": v for k, v in self.table.to_arrays().items()})
+        if self.patches is not None:
+            arrays.update({f"patches_{k}": v for k, v in self.patches.to_arrays().items()})
+        if self.patch_table is not None:
+            arrays.update({f"pfeatures_{k}": v for k, v in self.patch_table.features.to_arrays().items()})
+            arrays.update({f"ptable_{k}": v for k, v in self.patch_table.to_arrays().items()})
+        arrays["content_hash"] = np.array(content_hash(arrays))
+        write_replacing(path, arrays)
+        return path
+
+    @classmethod
+    def load(cls, path, *, mesh=None, bins=None, bounds=None):
+        """Read a model written by :meth:`save`.
+
+        mesh, bins, bounds : if given, the model must have been built for this mesh
+        and with these settings, else ModelFileError says what differs.
+        """
+        path = os.fspath(path)
+        data = read_npz(path)
+        check_version(path, data)
+        stored = data.pop("content_hash", None)
+        if stored is None or np.shape(stored) != () or str(stored) != content_hash(data):
+            raise ModelFileError(f"model file {path!r} is corrupt: its arrays do not match its content hash")
+        try:
+            model = cls._from_arrays(data)
+        except ContactPoseError as exc:  # a MeshError too: the mesh is the file's
+            raise ModelFileError(f"model file {path!r} is corrupt or not a model: {exc}") from None
+        model._check_expected(path, mesh=mesh, bins=bins, bounds=bounds)
+        return model
+
+    @classmethod
+    def _from_arrays(cls, data):
+        """The model of a file's arrays, each checked first (stored.py)."""
+        sizes = {}
+        check_arrays(data, STORED_MODEL, sizes)
+        vertices, faces = check_mesh_arrays(data["vertices"], data["faces"])
+        bounds, diameter, stored_hash = str(data["bounds"]), float(data["diameter"]), str(data["mesh_hash"])
+        if bounds not in BOUNDS or not diameter > 0:
+            raise ModelFileError(f"'bounds' must be one of {BOUNDS} and 'diameter' positive, got {bounds!r} "
+                                 f"and {diameter}")
+        if mesh_hash(vertices, faces) != stored_hash:
+            raise ModelFileError("its mesh does not match its stored hash")
+        planes = FacetPlanes(data["normals"], data["offsets"], data["areas"], data["valid"])
+        table, patches, patch_table = _stored_tables(data, sizes["m"])
+        return cls(vertices, faces, planes, table, bounds, diameter, stored_hash, {}, patches, patch_table)
+
+    @property
+    def max_span(self):
+        """The hand span the table was built for, or None (all pairs)."""
+        return (self.patch_table if self.table is None else self.table).max_span
+
+    def _check_expected(self, path, *, mesh, bins, bounds):
+        if mesh is not None:
+            vertices, faces = load_mesh(mesh)
+            if mesh_hash(vertices, faces) != self.mesh_hash:
+                raise ModelFileError(f"model file {path!r} was built for another mesh; rebuild it for this one")
+        if bins is not None and tuple(check_bins(bins)) != tuple(self.bins):
+            raise ModelFileError(f"model file {path!r} was built with bins={tuple(self.bins)}, but bins={tuple(bins)} was asked for")
+        if bounds is not None and bounds != self.bounds:
+            raise ModelFileError(f"model file {path!r} was built with bounds={self.bounds!r}, but bounds={bounds!r} was asked for")
+
+    def describe(self):
+        """A dict of the model's size and settings, for reports."""
+        return {
+            "facets": self.num_facets,
+            "degenerate_facets": int((~self.planes.valid).sum()),
+            "ordered_pairs": self.num_pairs,
+            "facet_table": self.table is not None,
+            "bins": list(self.bins),
+            "bounds": self.bounds,
+            "diameter": self.diameter,
+            "max_span": self.max_span,
+            "patches": None if self.patches is None else self.patches.count,
+        }
+
+
+def _find_patches(merged, planes, bounds, tol_deg):
+    """Patches for the default method, or None (no patches, or a paper-bounds model).
+    merged : the vertex-merged mesh (for edge adjacency)."""
+    if tol_deg is None or bounds != "exact":
+        return None
+    if not (np.isfinite(tol_deg) and 0 <= tol_deg < 90):
+        raise MeshError(f"patch_tol_deg must be an angle in [0, 90) degrees or None, got {tol_deg!r}")
+    return find_patches(merged, planes, tol_deg)
+
+
+def _serves(patches):
+    """Whether the default method searches patches (they shrink the search enough)."""
+    return patches is not None and patches.worthwhile
+
+
+def _keep_facet_pairs(facet_pairs, patches, pair_count):
+    """Whether to keep the facet-level table (see ObjectModel.from_mesh)."""
+    if facet_pairs not in (True, False, "auto"):
+        raise MeshError(f"facet_pairs must be True, False or 'auto', got {facet_pairs!r}")
+    serves = _serves(patches)
+    if facet_pairs == "auto":
+        return not serves or pair_count * STORED_BYTES_PER_PAIR <= FACET_TABLE_AUTO_BYTES
+    if not facet_pairs and not serves:
+        raise MeshError("facet_pairs=False needs patches that shrink the search (set patch_tol_deg)")
+    return facet_pairs
+
+
+def _stored_tables(data, facets):
+    """(facet table, patches, patch table) of a model file's arrays, None where absent.
+    facets : (m, the array that gives it)."""
+    patches = Patches.from_arrays(prefixed(data, "patches_"), {"m": facets}) if _has(data, "patches_") else None
+    patch_table = None
+    if _has(data, "ptable_", "pfeatures_"):
+        if patches is None:
+            raise ModelFileError("it has a patch table ('ptable_...') but no patches ('patches_...')")
+        patch_table = _stored_table(data, ("ptable_", "pfeatures_"), (patches.count, "patches_normals"))
+    table = None
+    if _has(data, "table_", "features_") or patch_table is None:  # a model has at least one table
+        table = _stored_table(data, ("table_", "features_"), facets)
+    return table, patches, patch_table
+
+
+def _stored_table(data, prefixes, items):
+    """A PairTable from the arrays named prefixes[0] + ... and prefixes[1] + ...;
+    items : (number of facets or patches its pairs index, the array that gives it)."""
+    features = PairFeatures.from_arrays(prefixed(data, prefixes[1]))
+    return PairTable.from_arrays(prefixed(data, prefixes[0]), features, {"n": items}, prefixes)
+
+
+def _has(data, *prefixes):
+    return any(key.startswith(prefixes) for key in data)
+
+
+def _check_span(max_span):
+    if max_span is None:
+        return None
+    try:
+        value = float(max_span)
+    except (TypeError, ValueError):
+        value = float("nan")
+    if not (np.isfinite(value) and value > 0):
+        raise MeshError(f"max_span must be a positive length in the mesh's units, got {max_span!r}")
+    return value
+
+
+def _pair_count(triangles, planes, max_span):
+    """Unordered pairs the table will hold (an upper bound with a span)."""
+    v = int(planes.valid.sum())
+    if max_span is None:
+        return v * (v + 1) // 2
+    return NearPairs.of_facets(triangles, np.flatnonzero(planes.valid), max_span).count_bound()
+
+
+def _report_facets(planes, merged):
+    """Log and warn about degenerate facets and suspicious winding."""
+    bad = np.flatnonzero(~planes.valid)
+    if len(bad) == len(planes.valid):
+        raise MeshError(f"all {len(bad)} facets are degenerate (zero or near-zero area)")
+    if len(bad):
+        shown = ", ".join(map(str, bad[:10])) + (" ..." if len(bad) > 10 else "")
+        warnings.warn(
+            f"{len(bad)} degenerate facets excluded from pairs (indices kept): {shown}",
+            stacklevel=3,
+        )
+    problem = winding_report(merged)
+    if problem:
+        warnings.warn(f"{problem}; contact normals will not match (try `--fix-normals`)", stacklevel=3)

@@ -1,0 +1,121 @@
+"""Ranking: the one constructor of ranked hypotheses, and the polish of their poses.
+
+Every ranked set of hypotheses (:class:`~contactpose.types.HypothesisArrays`) is built by
+:func:`hypothesis_arrays`: the residuals of :mod:`contactpose.solvers.residuals` at each
+pose, the whitened χ² (research/errata.md, "Further decisions"), and the ranking cost (χ² for
+the default method, eq. (7) ℒ for the paper's). Fingers left unassigned (facet -1,
+``max_outliers``) have NaN residuals and add OUTLIER_PENALTY to χ² and cost.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from contactpose.model.patches import nearest_members
+from contactpose.scoring.infacet import polished_poses
+from contactpose.solvers import residuals as res
+from contactpose.solvers.closed_form import fit_poses
+from contactpose.types import HypothesisArrays, fit_threshold, outlier_penalty
+
+#: The default method moves the poses of at most this many hypotheses toward the least
+#: full χ² (:func:`polish`), those whose plane χ² is at least POLISH_GAIN below the best.
+POLISH = 256
+POLISH_GAIN = 0.5
+
+
+def hypothesis_arrays(model, contacts, facets, fit, tolerance, *, method="fast", paper_cost=None,
+                      cost=None, covariance=None, probability=None, order=True):
+    """Hypotheses with their residuals and costs, ranked best first (unless ``order=False``).
+
+    facets : (H, n) int (-1: unassigned); fit : PoseFit of the H poses; method : "fast"
+    (cost = χ², residual column 3 the point-to-plane offset) or "paper" (cost = eq. (7)
+    ℒ, ``paper_cost`` when LM computed it, column 3 the eq. (7) offset); cost : (H,) an
+    explicit ranking cost (the factor graph's -log evidence); covariance : (H, 6, 6) and
+    probability : (H,) from the factor graph. residuals : (H, n, 5).
+    """
+    facets = np.asarray(facets, dtype=np.int64)
+    ok, safe = facets >= 0, np.maximum(facets, 0)
+    offsets = model.planes.offsets[safe]
+    r_n, r_o, r_l = res.contact_residuals(fit.R, fit.t, model.planes.normals[safe], offsets,
+                                          model.triangles[safe], contacts.points, contacts.finger_normals)
+    if not ok.all():
+        r_n, r_o, r_l = r_n * ok[..., None], r_o * ok, r_l * ok
+    chi2 = res.whitened_cost(r_n, r_o, r_l, tolerance.normal_noise, tolerance.position_noise) + outlier_penalty(facets)
+    offset_col = r_o
+    if method == "paper":
+        offset_col = res.paper_offset_residuals(fit.t, contacts.points, contacts.finger_normals, offsets)
+        cost = res.paper_cost(r_n, offset_col) if paper_cost is None else paper_cost
+    elif cost is None:
+        cost = chi2
+    residual = np.concatenate([r_n, offset_col[..., None], r_l[..., None]], axis=2)
+    if not ok.all():
+        residual[~ok] = np.nan
+    arrays = HypothesisArrays(facets, fit.poses(), cost, chi2, residual, fit, covariance, probability)
+    if not order or np.all(cost[1:] >= cost[:-1]):
+        return arrays
+    return arrays.take(np.argsort(cost, kind="stable"))
+
+
+def closed_form_arrays(model, contacts, facets, tolerance, *, prior=None, angle_tol=None):
+    """Given facet tuples posed in closed form and ranked as the default method ranks them:
+    for tuples found some other way (the true tuple, a rescue, one tuple to sample).
+
+    facets : (H, n) int -> HypothesisArrays, best χ² first. angle_tol : the closed form's
+    threshold for parallel normals (default: the normal noise); prior : its translation
+    picks the member of a translation family.
+    """
+    facets = np.asarray(facets, dtype=np.int64).reshape(-1, contacts.n)
+    t0 = None if prior is None else np.broadcast_to(prior.pose[:3, 3], (len(facets), 3))
+    fit = fit_poses(model.planes.normals[facets], model.planes.offsets[facets], contacts.points,
+                    contacts.finger_normals, cost="invariant",
+                    angle_tol=tolerance.normal_noise if angle_tol is None else angle_tol,
+                    t0=t0, centroids=model.centroids[facets])
+    return hypothesis_arrays(model, contacts, facets, fit, tolerance)
+
+
+def refined_arrays(model, contacts, refinement, fit, tolerance):
+    """A factor-graph Refinement as ranked hypotheses, in its order (most probable first).
+
+    fit : PoseFit of the refined rows (its free directions are kept; R, t become the
+    refined poses); cost = -log evidence (+inf when undetermined).
+    """
+    fit.R, fit.t = refinement.poses[:, :3, :3], refinement.poses[:, :3, 3]
+    cost = -np.nan_to_num(refinement.log_evidence, nan=-np.inf)
+    return hypothesis_arrays(model, contacts, refinement.facets, fit, tolerance, cost=cost,
+                             covariance=refinement.covariance, probability=refinement.probability, order=False)
+
+
+def polish(model, contacts, arrays, tolerance):
+    """The ranked hypotheses with the poses of those that could beat the best moved toward
+    the least full χ² (infacet.polished_poses), where that lowers it.
+
+    The closed form fits the planes only, the ranking cost includes the triangles: a
+    hypothesis whose plane χ² is at least POLISH_GAIN below the best full χ² (the best
+    itself, when a contact lies outside its triangle) is moved, up to POLISH of them, best
+    plane fit first. With patches, each moved contact gets the member facet nearest to it again.
+    """
+    lateral = arrays.residuals[..., 4]
+    if not lateral.any():  # every contact inside its triangle: the plane χ² is the full χ²
+        return arrays
+    plane = arrays.chi2 - np.sum(lateral**2, axis=1) / tolerance.position_noise**2
+    rows = np.flatnonzero(plane <= arrays.chi2.min() - POLISH_GAIN)
+    rows = rows[np.argsort(plane[rows], kind="stable")[:POLISH]]
+    if not len(rows):
+        return arrays
+    R, t = polished_poses(model, contacts, arrays, rows, tolerance, fit_threshold(contacts.n))
+    facets = arrays.facets[rows]
+    if model.patch_table is not None:
+        labels = np.ascontiguousarray(model.patches.labels[facets])
+        facets = nearest_members(model.patches, model.triangles, labels, res.to_object_frame(R, t, contacts.points))
+    fit = arrays.fit.take(rows)
+    fit.R, fit.t = R, t
+    moved = hypothesis_arrays(model, contacts, facets, fit, tolerance, order=False)
+    better = moved.chi2 < arrays.chi2[rows]
+    if not better.any():
+        return arrays
+    arrays = arrays.take(np.arange(len(arrays.cost)))      # a copy to update
+    keep, src = rows[better], np.flatnonzero(better)
+    for name in ("facets", "poses", "cost", "chi2", "residuals"):
+        getattr(arrays, name)[keep] = getattr(moved, name)[src]
+    arrays.fit.R[keep], arrays.fit.t[keep] = R[src], t[src]
+    return arrays.take(np.argsort(arrays.cost, kind="stable"))

@@ -1,0 +1,255 @@
+"""The tree T (§3.2): admissible facet pairs S_ij (search.pairs) joined into n-tuples.
+
+The tree joins the pairs into hypotheses h = (γ_1, ..., γ_n), tuples that satisfy
+every finger pair.
+
+Two joins give the same set:
+
+* :func:`join_tuples`, the default: level by level over all nodes in one compiled
+  pass, starting from the most selective finger pair; each node expands from the placed
+  finger with the fewest candidates, membership by binary search in sorted adjacency rows.
+* :func:`join_tuples_paper`: the paper's tree, node by node in finger order.
+"""
+
+from __future__ import annotations
+
+from itertools import accumulate
+
+import numba
+import numpy as np
+
+
+def triple_tolerance(angle_bound):
+    """Bound on |det[m_a, m_b, m_c] - det[n_a, n_b, n_c]| when each unit vector m is n tilted
+    by at most ``angle_bound``: det is multilinear, |m - n| <= δ = 2 sin(angle/2), so the
+    change is at most (1 + δ)³ - 1."""
+    delta = 2.0 * np.sin(min(angle_bound, np.pi) / 2.0)
+    return (1.0 + delta) ** 3 - 1.0
+
+
+class TripleTest:
+    """Handedness test for triples of fingers: pairwise angles cannot tell three normals
+    from their mirror image, the triple product can.
+
+    facet_normals : (m, 3); measured : (n, 3) measured object normals (-ñ);
+    angle_bound : per-contact tilt bound (radians).
+    """
+
+    def __init__(self, facet_normals, measured, angle_bound):
+        self.facet_normals = facet_normals
+        self.measured = measured
+        self.tol = triple_tolerance(angle_bound)
+
+
+@numba.njit(cache=True)
+def _det3(a, b, c):
+    return (a[0] * (b[1] * c[2] - b[2] * c[1]) - a[1] * (b[0] * c[2] - b[2] * c[0])
+            + a[2] * (b[0] * c[1] - b[1] * c[0]))
+
+
+def join_tuples(S, n, triple=None):
+    """All n-tuples admissible for every finger pair (the tree T), level by level in one
+    compiled pass over all nodes, starting from the most selective finger pair.
+
+    Each node places the next finger from the placed finger that admits the fewest facets
+    for it, then tests the others by binary search in their sorted adjacency rows.
+    S : dict (i, j) -> PairSet for i < j; triple : optional TripleTest applied to every
+    triple of fingers as soon as it is placed. Returns (H, n) int64 in finger order, each
+    node's children in ascending facet order.
+    """
+    pairs = sorted(S)
+    pair_of = np.full((n, n), -1, dtype=np.int64)
+    for e, (i, j) in enumerate(pairs):
+        pair_of[i, j] = pair_of[j, i] = e
+    order, _ = placement_order(S, n)
+    m = S[pairs[0]].m
+    first, second, cut = getattr(S, "flat", None) or _flat_pairs(S, pairs)
+    if triple is None:
+        normals, measured, tol = np.zeros((1, 3)), np.zeros((n, 3)), np.inf
+    else:
+        normals, measured, tol = triple.facet_normals, triple.measured, triple.tol
+    return _join(first, second, cut, m, order, pair_of, np.ascontiguousarray(normals, dtype=np.float64),
+                 np.ascontiguousarray(measured, dtype=np.float64), float(tol))
+
+
+def _flat_pairs(S, pairs):
+    """(first, second, (P + 1,) offsets): the facet pairs of ``pairs`` concatenated."""
+    cut = np.zeros(len(pairs) + 1, dtype=np.int64)
+    cut[1:] = list(accumulate(len(S[p]) for p in pairs))
+    join = lambda arrays: np.concatenate(arrays + [np.empty(0, np.int64)]).astype(np.int64)
+    return join([S[p].first for p in pairs]), join([S[p].second for p in pairs]), cut
+
+
+def placement_order(S, n):
+    """Fingers in the order the tree places them, and for each the position (in that
+    order) of the placed finger it is expanded from: first the most selective pair, then
+    always the (new, placed) finger pair with the fewest admissible facet pairs.
+    Returns (order (n,) int64, parent (n,) int64; parent of the first two is -1)."""
+    size = {pair: len(S[pair]) for pair in S}
+    order, parent = list(min(size, key=size.get)), [-1, -1]
+    while len(order) < n:
+        best = (np.inf, -1, -1)  # (size, new finger, position of the placed one); ties: first
+        for f in range(n):
+            for b, a in enumerate(order if f not in order else ()):
+                if size[(min(a, f), max(a, f))] < best[0]:
+                    best = (size[(min(a, f), max(a, f))], f, b)
+        order.append(best[1])
+        parent.append(best[2])
+    return np.array(order, dtype=np.int64), np.array(parent, dtype=np.int64)
+
+
+@numba.njit(cache=True)
+def _join(first, second, cut, m, order, pair_of, normals, measured, tol):
+    """The tree T. first, second, cut : every finger pair's admissible facet pairs,
+    concatenated in pair order (see join_tuples)."""
+    n = len(order)
+    e0 = pair_of[order[0], order[1]]
+    start_a, start_b = _directed(first, second, cut, e0, order[0] < order[1])
+    nodes = np.empty((len(start_a), n), dtype=np.int64)
+    nodes[:, 0], nodes[:, 1] = start_a, start_b
+    count = len(nodes)
+    for level in range(2, n):
+        indptr = np.empty((level, m + 1), dtype=np.int64)
+        targets = np.empty((level, cut[-1]), dtype=np.int64)
+        for b in range(level):
+            e = pair_of[order[b], order[level]]
+            src, dst = _directed(first, second, cut, e, order[b] < order[level])
+            _adjacency(src, dst, m, indptr[b], targets[b])
+        nodes, count = _grow(nodes, count, level, indptr, targets, order, normals, measured, tol)
+    out = np.empty((count, n), dtype=np.int64)
+    for c in range(n):
+        out[:, order[c]] = nodes[:count, c]
+    return out
+
+
+@numba.njit(cache=True)
+def _directed(first, second, cut, e, forward):
+    """Finger pair e's facet pairs as (from, to): (first, second), or reversed."""
+    a, b = first[cut[e]:cut[e + 1]], second[cut[e]:cut[e + 1]]
+    return (a, b) if forward else (b, a)
+
+
+@numba.njit(cache=True)
+def _adjacency(src, dst, m, indptr, targets):
+    """CSR adjacency src -> dst into indptr (m + 1,) and targets (first len(src) entries),
+    each row in ascending order: counting sort by dst, then a stable one by src."""
+    s = len(src)
+    by_dst = np.empty(s, dtype=np.int64)
+    pos = np.zeros(m + 1, dtype=np.int64)
+    for q in range(s):
+        pos[dst[q] + 1] += 1
+    for f in range(m):
+        pos[f + 1] += pos[f]
+    for q in range(s):
+        by_dst[pos[dst[q]]] = q
+        pos[dst[q]] += 1
+    indptr[:] = 0
+    for q in range(s):
+        indptr[src[q] + 1] += 1
+    for f in range(m):
+        indptr[f + 1] += indptr[f]
+    pos[:m] = indptr[:m]
+    for q in by_dst:
+        targets[pos[src[q]]] = dst[q]
+        pos[src[q]] += 1
+
+
+@numba.njit(cache=True)
+def _grow(nodes, count, level, indptr, targets, order, normals, measured, tol):
+    """Place finger order[level] under every node: each facet that the placed finger with
+    the fewest candidates admits, kept if every other placed finger admits it too (binary
+    search in its sorted row) and every new triple passes."""
+    want = _measured_triples(measured, order, level)
+    out = np.empty((max(count, 16), nodes.shape[1]), dtype=np.int64)
+    k = 0
+    for r in range(count):
+        a, fewest = 0, np.iinfo(np.int64).max
+        for b in range(level):
+            size = indptr[b, nodes[r, b] + 1] - indptr[b, nodes[r, b]]
+            if size < fewest:
+                a, fewest = b, size
+        for q in range(indptr[a, nodes[r, a]], indptr[a, nodes[r, a] + 1]):
+            facet = targets[a, q]
+            if not _admitted(nodes[r], facet, level, a, indptr, targets):
+                continue
+            if tol < np.inf and not _triples_pass(normals, nodes[r], facet, level, want, tol):
+                continue
+            if k == len(out):
+                out = _doubled(out)
+            out[k, :level] = nodes[r, :level]
+            out[k, level] = facet
+            k += 1
+    return out, k
+
+
+@numba.njit(cache=True)
+def _admitted(node, facet, level, skip, indptr, targets):
+    """Whether every placed finger but ``skip`` admits the new finger on ``facet``."""
+    for b in range(level):
+        if b == skip:
+            continue
+        lo, hi = indptr[b, node[b]], indptr[b, node[b] + 1]
+        pos = lo + np.searchsorted(targets[b, lo:hi], facet)
+        if pos == hi or targets[b, pos] != facet:
+            return False
+    return True
+
+
+@numba.njit(cache=True)
+def _measured_triples(measured, order, level):
+    """det[ñ_a, ñ_b, ñ_new] of the measured normals for placed pairs a < b (row-major)."""
+    want = np.empty(level * (level - 1) // 2)
+    t = 0
+    for a in range(level):
+        for b in range(a + 1, level):
+            want[t] = _det3(measured[order[a]], measured[order[b]], measured[order[level]])
+            t += 1
+    return want
+
+
+@numba.njit(cache=True)
+def _triples_pass(normals, node, facet, level, want, tol):
+    t = 0
+    for a in range(level):
+        for b in range(a + 1, level):
+            if abs(_det3(normals[node[a]], normals[node[b]], normals[facet]) - want[t]) > tol:
+                return False
+            t += 1
+    return True
+
+
+@numba.njit(cache=True)
+def _doubled(a):
+    out = np.empty((2 * len(a), a.shape[1]), dtype=a.dtype)
+    out[:len(a)] = a
+    return out
+
+
+def join_tuples_paper(S, n):
+    """The paper's tree T (§3.2, fig. 7): insert S_12, then grow each node in finger order.
+
+    A node on level f (fingers 0..f-1 placed) gets a child γ_f for every facet that
+    S_0f, ..., S_(f-1)f all admit with the node's ancestors. Returns (H, n) int64.
+    """
+    first = S[(0, 1)]
+    paths = [[int(k), int(l)] for k, l in zip(first.first, first.second)]
+    for f in range(2, n):
+        grown = []
+        for path in paths:
+            children = None
+            for a, facet in enumerate(path):
+                indptr, targets = S[(a, f)].neighbours()
+                allowed = targets[indptr[facet]:indptr[facet + 1]]
+                children = allowed if children is None else np.intersect1d(children, allowed, assume_unique=True)
+                if len(children) == 0:
+                    break
+            grown.extend(path + [int(c)] for c in children)
+        paths = grown
+    return np.array(paths, dtype=np.int64).reshape(-1, n)
+
+
+def sorted_rows(tuples):
+    """Rows in lexicographic order, so joins can be compared as sets. tuples : (H, n) int."""
+    if len(tuples) == 0:
+        return tuples
+    return tuples[np.lexsort(tuples.T[::-1])]

@@ -1,0 +1,1 @@
+"""Simulation: built-in objects, simulated grasps and sensor noise, a range scanner."""

@@ -1,0 +1,328 @@
+"""Shared types of the online phase: priors, poses, hypotheses, pose classes, results.
+
+The bottom layer: every stage above (search, solvers, scoring, the pipeline) exchanges
+these, so none of them imports another stage for a type. Poses are T_world_object
+(4, 4), x_w = R x_o + t; covariances are (6, 6) in Pose3 tangent order, rotation first.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field, fields
+from functools import lru_cache
+
+import numpy as np
+
+from contactpose.contacts import Tolerance
+from contactpose.errors import PriorError
+
+METHODS = ("fast", "paper")
+SOLVERS = ("closed-form", "lm", "factor-graph")
+ROBUST = ("huber", "cauchy", "none")
+#: solver="factor-graph" refines this many of the best closed-form hypotheses (0: all).
+DEFAULT_REFINE = 20
+#: Probability that a correct hypothesis passes the fit test (χ² quantile, 3 dof per contact).
+FIT_CONFIDENCE = 0.9973
+#: With evidence-based probabilities (factor graph), "ambiguous" needs the classes other
+#: than the best to hold more than this probability together.
+AMBIGUOUS_PROBABILITY = 0.05
+#: χ² charged per unassigned finger (max_outliers): the FIT_CONFIDENCE quantile of one
+#: contact's 3 dof, so dropping a finger never beats assigning it within noise.
+OUTLIER_PENALTY = 14.16
+#: Default position noise when none is given: this fraction of the object diameter.
+DEFAULT_POSITION_NOISE_FRAC = 0.0025
+STATUSES = ("ok", "no_hypothesis", "underdetermined", "ambiguous")
+
+
+
+@dataclass
+class PoseFit:
+    """Poses of H hypotheses with their degenerate directions.
+
+    R : (H, 3, 3); t : (H, 3);
+    free_translation : (H, 3, 3) rows are world unit directions, valid where
+    free_translation_mask : (H, 3) bool; free_rotation : (H, 3) world axis, valid
+    where free_rotation_mask : (H,) bool.
+    """
+
+    R: np.ndarray
+    t: np.ndarray
+    free_translation: np.ndarray
+    free_translation_mask: np.ndarray
+    free_rotation: np.ndarray
+    free_rotation_mask: np.ndarray
+
+    def take(self, idx):
+        """The fits of the hypotheses ``idx``."""
+        return PoseFit(*(getattr(self, f.name)[idx] for f in fields(self)))
+
+    def concat(self, other):
+        """Both sets of fits, self's first."""
+        return PoseFit(*(np.concatenate([getattr(self, f.name), getattr(other, f.name)]) for f in fields(self)))
+
+    @property
+    def underdetermined(self):
+        """(H,) bool: a pose family, not one pose."""
+        return self.free_translation_mask.any(axis=1) | self.free_rotation_mask
+
+    def poses(self):
+        """(H, 4, 4) T_world_object."""
+        T = np.zeros((len(self.R), 4, 4))
+        T[:, :3, :3] = self.R
+        T[:, :3, 3] = self.t
+        T[:, 3, 3] = 1.0
+        return T
+
+
+@dataclass(frozen=True)
+class PosePrior:
+    """A vision estimate of T_world_object with its uncertainty.
+
+    pose : (4, 4) rigid transform; sigma_rot_deg, sigma_trans : standard deviations
+    (degrees, length units), or covariance : (6, 6) in Pose3 tangent order (rotation first).
+    """
+
+    pose: np.ndarray
+    sigma_rot_deg: float | None = None
+    sigma_trans: float | None = None
+    covariance: np.ndarray | None = None
+
+    def __post_init__(self):
+        pose = check_rigid(self.pose, "prior pose")
+        object.__setattr__(self, "pose", pose)
+        if self.covariance is not None:
+            cov = np.asarray(self.covariance, dtype=np.float64)
+            if cov.shape != (6, 6) or not np.all(np.isfinite(cov)) or not np.allclose(cov, cov.T, atol=1e-12):
+                raise PriorError(f"prior covariance must be a finite symmetric (6, 6) matrix, got shape {cov.shape}")
+            if np.linalg.eigvalsh(cov).min() <= 0:
+                raise PriorError("prior covariance must be positive definite")
+            object.__setattr__(self, "covariance", cov)
+            return
+        for name in ("sigma_rot_deg", "sigma_trans"):
+            value = getattr(self, name)
+            if value is None or not (np.isfinite(value) and value > 0):
+                raise PriorError(f"prior {name} must be a positive number, got {value!r}")
+
+    def covariance_matrix(self):
+        """(6, 6) covariance, rotation (radians) first, then translation."""
+        if self.covariance is not None:
+            return self.covariance
+        sig = [np.radians(self.sigma_rot_deg)] * 3 + [self.sigma_trans] * 3
+        return np.diag(np.square(sig))
+
+    def to_dict(self):
+        out = {"pose": self.pose.tolist()}
+        if self.covariance is not None:
+            out["covariance"] = self.covariance.tolist()
+        else:
+            out.update(sigma_rot_deg=self.sigma_rot_deg, sigma_trans=self.sigma_trans)
+        return out
+
+
+def check_rigid(T, name="pose"):
+    """T -> (4, 4) float64 if it is a rigid transform, else PriorError naming the defect."""
+    try:
+        T = np.asarray(T, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise PriorError(f"{name} must be a 4x4 matrix of numbers") from None
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise PriorError(f"{name} must be a finite 4x4 matrix, got shape {T.shape}")
+    R = T[:3, :3]
+    err = np.abs(R.T @ R - np.eye(3)).max()
+    if err > 1e-6 or np.linalg.det(R) <= 0:
+        raise PriorError(f"{name} is not rigid: |RᵀR - I| = {err:.2g}, det R = {np.linalg.det(R):.3g} (need a rotation)")
+    if not np.allclose(T[3], [0, 0, 0, 1]):
+        raise PriorError(f"{name} last row must be [0, 0, 0, 1], got {T[3].tolist()}")
+    return T
+
+
+@dataclass
+class Hypothesis:
+    """One assignment of fingers to facets and the pose behind it.
+
+    facets : (n,) int; pose : (4, 4) T_world_object; cost : ranking cost (χ² for
+    "fast", eq. (7) ℒ for "paper"); residuals : (n, 5) columns normal x/y/z (world),
+    offset (point-to-plane; the eq. (7) offset for "paper"), lateral (outside the triangle);
+    chi2 : whitened fit; underdetermined : bool; free_translation : (k, 3) world
+    directions; free_rotation : (3,) world axis or None; outliers : fingers left
+    unassigned (facet -1) under ``max_outliers``.
+    """
+
+    facets: np.ndarray
+    pose: np.ndarray
+    cost: float
+    residuals: np.ndarray
+    chi2: float
+    underdetermined: bool
+    free_translation: np.ndarray
+    free_rotation: np.ndarray | None
+    outliers: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=np.int64))
+    covariance: np.ndarray | None = None
+    probability: float | None = None
+    samples: object | None = None
+    sample_covariance: np.ndarray | None = None
+
+    def to_dict(self):
+        out = {
+            "outliers": self.outliers.tolist(),
+            "facets": self.facets.tolist(),
+            "pose": self.pose.tolist(),
+            "cost": float(self.cost),
+            "chi2": float(self.chi2),
+            "residuals": self.residuals.tolist(),
+            "underdetermined": bool(self.underdetermined),
+            "free_translation": self.free_translation.tolist(),
+            "free_rotation": None if self.free_rotation is None else self.free_rotation.tolist(),
+        }
+        if self.covariance is not None:
+            out["covariance"] = self.covariance.tolist()
+        if self.probability is not None:
+            out["probability"] = float(self.probability)
+        if self.samples is not None:
+            out["sample_covariance"] = self.sample_covariance.tolist()
+            out["samples"] = self.samples.summary()
+        return out
+
+
+@dataclass
+class HypothesisArrays:
+    """All hypotheses as arrays (ranked), so thousands cost no Python objects.
+
+    facets (H, n) int, poses (H, 4, 4), cost (H,), chi2 (H,), residuals (H, n, 5), fit : PoseFit.
+    """
+
+    facets: np.ndarray
+    poses: np.ndarray
+    cost: np.ndarray
+    chi2: np.ndarray
+    residuals: np.ndarray
+    fit: PoseFit
+    covariance: np.ndarray | None = None
+    probability: np.ndarray | None = None
+
+    def take(self, idx):
+        pick = (lambda a: None if a is None else a[idx])
+        return HypothesisArrays(self.facets[idx], self.poses[idx], self.cost[idx], self.chi2[idx],
+                                self.residuals[idx], self.fit.take(idx), pick(self.covariance),
+                                pick(self.probability))
+
+    def merged(self, other):
+        """Both sets of hypotheses in one ranking (by cost)."""
+        joined = HypothesisArrays(*(np.concatenate([a, b]) for a, b in zip(
+            (self.facets, self.poses, self.cost, self.chi2, self.residuals),
+            (other.facets, other.poses, other.cost, other.chi2, other.residuals))), self.fit.concat(other.fit))
+        return joined.take(np.argsort(joined.cost, kind="stable"))
+
+    def widened(self, fingers, n, penalty):
+        """Hypotheses over a subset of fingers as hypotheses over all n: the others get
+        facet -1 and NaN residuals, and ``penalty`` is added to cost and χ²."""
+        h = len(self.cost)
+        facets = -np.ones((h, n), dtype=self.facets.dtype)
+        facets[:, fingers] = self.facets
+        residuals = np.full((h, n, self.residuals.shape[2]), np.nan)
+        residuals[:, fingers] = self.residuals
+        return HypothesisArrays(facets, self.poses, self.cost + penalty, self.chi2 + penalty, residuals, self.fit)
+
+
+class HypothesisList(Sequence):
+    """A read-only ranked list of :class:`Hypothesis`, built on access."""
+
+    def __init__(self, arrays):
+        self.arrays = arrays
+        self.samples = {}  # rank -> PoseSamples, filled by localize(..., samples=N)
+
+    def __len__(self):
+        return len(self.arrays.cost)
+
+    def __getitem__(self, i):
+        if isinstance(i, slice):
+            return [self[j] for j in range(*i.indices(len(self)))]
+        a = self.arrays
+        i = range(len(self))[i]
+        f = a.fit
+        return Hypothesis(
+            facets=a.facets[i], pose=a.poses[i], cost=float(a.cost[i]), residuals=a.residuals[i],
+            chi2=float(a.chi2[i]), underdetermined=bool(f.underdetermined[i]),
+            free_translation=f.free_translation[i][f.free_translation_mask[i]],
+            free_rotation=f.free_rotation[i] if f.free_rotation_mask[i] else None,
+            outliers=np.flatnonzero(a.facets[i] < 0),
+            covariance=None if a.covariance is None else a.covariance[i],
+            probability=None if a.probability is None else float(a.probability[i]),
+            samples=self.samples.get(i),
+            sample_covariance=None if i not in self.samples else self.samples[i].covariance,
+        )
+
+
+@dataclass
+class Result:
+    """The outcome of :func:`localize`.
+
+    status : "ok" | "no_hypothesis" | "underdetermined" | "ambiguous";
+    hypotheses : ranked list, best first; timing : seconds per stage; hint : why, when not ok.
+    """
+
+    status: str
+    hypotheses: HypothesisList
+    timing: dict
+    method: str
+    solver: str
+    tolerance: Tolerance
+    hint: str = ""
+    num_hypotheses: int = 0
+    classes: list = field(default_factory=list)
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def best(self):
+        """The best hypothesis, or None."""
+        return self.hypotheses[0] if len(self.hypotheses) else None
+
+    def to_dict(self):
+        """A JSON-ready dict."""
+        return {
+            "status": self.status,
+            "hint": self.hint,
+            "method": self.method,
+            "solver": self.solver,
+            "num_hypotheses": self.num_hypotheses,
+            "tolerance": {"distance": self.tolerance.distance, "angle_deg": float(np.degrees(self.tolerance.angle))},
+            "timing": self.timing,
+            "classes": [c.to_dict() for c in self.classes],
+            "hypotheses": [h.to_dict() for h in self.hypotheses],
+            **self.extra,
+        }
+
+
+@lru_cache(maxsize=64)
+def fit_threshold(n):
+    """χ² bound that a correct hypothesis of n contacts passes with FIT_CONFIDENCE."""
+    from scipy.stats import chi2
+
+    return float(chi2.ppf(FIT_CONFIDENCE, 3 * n))
+
+
+@dataclass
+class PoseClass:
+    """Hypotheses that place the object's surface the same way (ADD-S below
+    SAME_CLASS_ADDS_FRAC of the diameter): symmetric twins count as one placement.
+
+    members : hypothesis ranks (in the full ranking); best : rank of its best member;
+    pose : (4, 4) its best pose; chi2 : its best χ²; probability : share of the
+    likelihood exp(-χ²/2) summed over members, normalised over classes.
+    """
+
+    members: np.ndarray
+    best: int
+    pose: np.ndarray
+    chi2: float
+    probability: float
+
+    def to_dict(self):
+        return {"members": self.members.tolist(), "best": int(self.best), "pose": self.pose.tolist(),
+                "chi2": float(self.chi2), "probability": float(self.probability)}
+
+
+def outlier_penalty(facets):
+    """χ² charged for the unassigned fingers (facet -1) of each row: OUTLIER_PENALTY each, so
+    that leaving a finger out never beats assigning it within noise. (H, n) -> (H,)"""
+    return OUTLIER_PENALTY * np.sum(np.asarray(facets) < 0, axis=-1)

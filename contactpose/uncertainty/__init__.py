@@ -1,0 +1,1 @@
+"""Pose uncertainty: the posterior of a hypothesis and its emcee samples."""

@@ -1,0 +1,575 @@
+"""Tests of contactpose.solvers.factor_graph against independent references.
+
+References: numerical derivatives on the Pose3 retraction (gtsam.utils.numerical_derivative),
+the residuals of contactpose.solvers.residuals, GTSAM's own mEstimator losses and per-factor
+Robust noise models, scipy.optimize.least_squares on the same cost, and the inverse
+Gauss-Newton Hessian.
+"""
+
+import re
+from functools import partial
+
+import gtsam
+import numpy as np
+import pytest
+from gtsam.utils.numerical_derivative import numericalDerivative11
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from contactpose.contacts import Contacts, Tolerance
+from contactpose.errors import ContactPoseError
+from contactpose.geometry.metrics import rotation_error_deg, translation_error
+from contactpose.localize import localize
+from contactpose.scoring.classes import pose_classes
+from contactpose.scoring.rank import closed_form_arrays
+from contactpose.scoring.status import ambiguous
+from contactpose.sim import grasps as simulate
+from contactpose.solvers import factor_graph as fg
+from contactpose.solvers import residuals
+from contactpose.types import HypothesisArrays, PoseFit, PosePrior
+
+#: Jacobians must match numerical derivatives to this, relative to the largest entry.
+JAC_RTOL = 1e-6
+KERNELS = ["none", "huber", "cauchy"]
+
+
+@pytest.fixture
+def rock(rock_model):
+    """The rock of conftest (built once per session)."""
+    return rock_model
+
+
+@pytest.fixture
+def box(box_model):
+    """The box of conftest (built once per session)."""
+    return box_model
+
+
+def _tolerance(model, position_frac=0.0025, normal_deg=1.0):
+    return Tolerance.from_noise(position_frac * model.diameter, normal_deg)
+
+
+def _tight_params():
+    params = fg.lm_params(max_iterations=200, relative_tol=1e-14)
+    params.setAbsoluteErrorTol(0.0)
+    return params
+
+
+def _mixed_contacts(model, rng, n_in=3, n_out=3):
+    """Contacts on random facets, half of them pushed outside their triangle (r_l > 0).
+
+    Returns contacts (world), their facets, the true pose and an evaluation pose near it.
+    """
+    facets = simulate.choose_facets(model, n_in + n_out, rng, weight="uniform")
+    tri = model.triangles[facets]
+    normals = model.planes.normals[facets]
+    p = tri.mean(axis=1)
+    # push the last n_out contacts out over an edge: beyond the first vertex, in-plane
+    out = tri[n_in:, 0] - p[n_in:]
+    p[n_in:] += 1.5 * out
+    p += rng.normal(0, 0.002, (len(p), 1)) * normals  # off the plane too
+    T = simulate.random_pose(rng, max_translation=0.05)
+    world_normals = simulate.perturb_normals(normals @ T[:3, :3].T, np.radians(2.0), rng)
+    contacts = Contacts(p @ T[:3, :3].T + T[:3, 3], object_normals=world_normals)
+    T_eval = gtsam.Pose3(T).retract(np.concatenate([rng.normal(0, 0.002, 3), rng.normal(0, 0.0002, 3)]))
+    return contacts, facets, T, T_eval
+
+
+def _numeric_jacobian(data, pk, pose, point_to_facet, robust):
+    def h(P):
+        return fg.contact_residuals(P.matrix(), data, pk, jacobian=False)[0]
+    return numericalDerivative11(h, pose, delta=1e-6)
+
+
+# ---------------------------------------------------------------- Jacobians ---
+
+@pytest.mark.parametrize("robust", KERNELS)
+@pytest.mark.parametrize("point_to_facet", [True, False])
+def test_jacobian_matches_numerical_derivative(rock, robust, point_to_facet):
+    rng = np.random.default_rng(7)
+    tol = _tolerance(rock)
+    pk = fg.kernel_params(tol, robust, point_to_facet)
+    worst = 0.0
+    for _ in range(10):
+        contacts, facets, _, pose = _mixed_contacts(rock, rng)
+        data = fg.pack_contacts(rock, contacts, facets)
+        e, J = fg.contact_residuals(pose.matrix(), data, pk)
+        J_num = _numeric_jacobian(data, pk, pose, point_to_facet, robust)
+        assert J.shape == (fg.factor_dim(len(facets), point_to_facet), 6)
+        worst = max(worst, np.abs(J - J_num).max() / np.abs(J).max())
+        if point_to_facet:
+            n = len(facets)
+            assert np.all(e[4 * n + 3:] > 0) and np.all(e[4 * n:4 * n + 3] == 0)  # r_l active / inside
+    assert worst < JAC_RTOL
+
+
+def test_gtsam_linearizes_with_our_jacobian(rock):
+    """Shapes are not checked by CustomFactor: what GTSAM sees must be exactly (J, -e)."""
+    rng = np.random.default_rng(3)
+    contacts, facets, _, pose = _mixed_contacts(rock, rng)
+    data = fg.pack_contacts(rock, contacts, facets)
+    pk = fg.kernel_params(_tolerance(rock), "huber")
+    e, J = fg.contact_residuals(pose.matrix(), data, pk)
+    values = gtsam.Values()
+    values.insert(fg.POSE_KEY, pose)
+    A, b = fg.contact_factor(data, pk).linearize(values).jacobian()
+    np.testing.assert_allclose(A, J, rtol=1e-12, atol=1e-12 * np.abs(J).max())
+    np.testing.assert_allclose(b, -e, rtol=1e-12, atol=1e-12)
+
+
+def test_prior_factor_jacobian(rock):
+    rng = np.random.default_rng(4)
+    T = simulate.random_pose(rng, max_translation=0.1)
+    cov = np.diag([0.01, 0.02, 0.03, 1e-4, 2e-4, 3e-4])
+    cov[0, 4] = cov[4, 0] = 1e-4
+    factor = fg.prior_factor(PosePrior(T, covariance=cov))
+    pose = gtsam.Pose3(T).retract(rng.normal(0, 0.1, 6))
+    values = gtsam.Values()
+    values.insert(fg.POSE_KEY, pose)
+    A, b = factor.linearize(values).jacobian()
+
+    def whitened(P):
+        v = gtsam.Values()
+        v.insert(fg.POSE_KEY, P)
+        return factor.whitenedError(v)
+    np.testing.assert_allclose(A, numericalDerivative11(whitened, pose, 1e-6), rtol=1e-6, atol=1e-6 * np.abs(A).max())
+    # the prior's error is ξ = Log(T_prior⁻¹ T): the covariance lives in the right-perturbation tangent
+    xi = gtsam.Pose3.Logmap(gtsam.Pose3(T).between(pose))
+    assert 2 * factor.error(values) == pytest.approx(xi @ np.linalg.solve(cov, xi), rel=1e-9)
+
+
+# ---------------------------------------------------------------- residuals ---
+
+def test_factor_error_is_the_residuals_module(rock):
+    rng = np.random.default_rng(5)
+    tol = _tolerance(rock)
+    contacts, facets, _, pose = _mixed_contacts(rock, rng)
+    T = pose.matrix()
+    e, _ = fg.contact_residuals(T, fg.pack_contacts(rock, contacts, facets), fg.kernel_params(tol, "none"))
+    n = len(facets)
+    R, t = T[None, :3, :3], T[None, :3, 3]
+    normals = rock.planes.normals[facets][None]
+    p = residuals.to_object_frame(R, t, contacts.points)
+    r_n = residuals.normal_residuals(R, normals, contacts.finger_normals)[0]
+    r_o = residuals.offset_residuals(p, normals, rock.planes.offsets[facets][None])
+    r_l = residuals.lateral_residuals(p, rock.triangles[facets][None], r_o)[0]
+    np.testing.assert_allclose(e[:3 * n] * tol.normal_noise, r_n.ravel(), atol=1e-15)
+    np.testing.assert_allclose(e[3 * n:4 * n] * tol.position_noise, r_o[0], atol=1e-15)
+    # residuals.py forms sqrt(dist² - r_o²), which leaves ~sqrt(eps)·|r_o| for a contact over
+    # its triangle; the factor takes the in-plane part of the vector to the closest point.
+    np.testing.assert_allclose(e[4 * n:] * tol.position_noise, r_l, atol=1e-7 * np.abs(r_o).max())
+    chi2 = residuals.whitened_cost(r_n[None], r_o, r_l[None], tol.normal_noise, tol.position_noise)[0]
+    assert e @ e == pytest.approx(chi2, rel=1e-12)
+
+
+@pytest.mark.parametrize("robust, estimator", [("huber", gtsam.noiseModel.mEstimator.Huber),
+                                               ("cauchy", gtsam.noiseModel.mEstimator.Cauchy)])
+def test_robust_block_loss_is_gtsam_mestimator(rock, robust, estimator):
+    """½|ẽ_i|² = ρ(s_i) of GTSAM's own mEstimator, per contact block."""
+    rng = np.random.default_rng(6)
+    tol = _tolerance(rock)
+    contacts, facets, _, pose = _mixed_contacts(rock, rng)
+    data = fg.pack_contacts(rock, contacts, facets)
+    e0, _ = fg.contact_residuals(pose.matrix(), data, fg.kernel_params(tol, "none"))
+    e1, _ = fg.contact_residuals(pose.matrix(), data, fg.kernel_params(tol, robust))
+    n = len(facets)
+    rows = [np.r_[3 * i:3 * i + 3, 3 * n + i, 4 * n + i] for i in range(n)]
+    rho = estimator.Create(fg.kernel_params(tol, robust)[2])
+    s = np.array([np.linalg.norm(e0[r]) for r in rows])
+    assert s.max() > 3 * fg.HUBER_K  # some blocks are in the robust zone
+    for r, si in zip(rows, s):
+        assert 0.5 * e1[r] @ e1[r] == pytest.approx(rho.loss(si), rel=1e-12)
+
+
+@pytest.mark.parametrize("robust", ["huber", "cauchy"])
+def test_batched_robust_equals_per_contact_gtsam_robust(rock, robust):
+    """One batched factor with the in-factor kernel = n factors with noiseModel.Robust."""
+    rng = np.random.default_rng(8)
+    tol = _tolerance(rock)
+    contacts, facets, T_true, pose = _mixed_contacts(rock, rng, n_in=4, n_out=1)
+    k = fg.kernel_params(tol, robust)[2]
+    est = {"huber": gtsam.noiseModel.mEstimator.Huber, "cauchy": gtsam.noiseModel.mEstimator.Cauchy}[robust]
+    batched = gtsam.NonlinearFactorGraph()
+    batched.add(fg.contact_factor(fg.pack_contacts(rock, contacts, facets), fg.kernel_params(tol, robust)))
+    single = gtsam.NonlinearFactorGraph()
+    noise = gtsam.noiseModel.Robust.Create(est.Create(k), gtsam.noiseModel.Unit.Create(5))
+    packed = fg.pack_contacts(rock, contacts, facets)
+    for i in range(len(facets)):
+        data = packed[i:i + 1]
+        single.add(gtsam.CustomFactor(noise, [fg.POSE_KEY], partial(
+            fg.contact_error, data, fg.kernel_params(tol, "none"), np.empty(5), np.empty((5, 6)), fg.POSE_KEY)))
+    values = gtsam.Values()
+    values.insert(fg.POSE_KEY, pose)
+    assert batched.error(values) == pytest.approx(single.error(values), rel=1e-12)
+    a = gtsam.LevenbergMarquardtOptimizer(batched, values, _tight_params()).optimize().atPose3(fg.POSE_KEY)
+    b = gtsam.LevenbergMarquardtOptimizer(single, values, _tight_params()).optimize().atPose3(fg.POSE_KEY)
+    assert np.abs(a.localCoordinates(b)).max() < 1e-6
+
+
+# ------------------------------------------------------------- same optimum ---
+
+def _grasp(model, rng, n=4, frac=0.0025, deg=1.0):
+    return simulate.grasp(model, rng, n=n, position_noise=frac * model.diameter, normal_noise_deg=deg,
+                          where="centroid")
+
+
+def test_same_optimum_as_scipy_least_squares(rock):
+    """No prior, no kernel, no point-to-facet: GTSAM LM = scipy on the invariant cost."""
+    rng = np.random.default_rng(11)
+    tol = _tolerance(rock)
+    for _ in range(5):
+        g = _grasp(rock, rng)
+        arrays = closed_form_arrays(rock, g.contacts, g.facets[None], tol)
+        ref = fg.refine_hypotheses(rock, g.contacts, arrays, tol, robust="none", point_to_facet=False,
+                                   params=_tight_params())
+        normals = rock.planes.normals[g.facets][None]
+        offsets = rock.planes.offsets[g.facets][None]
+
+        def fun(x):
+            R = Rotation.from_rotvec(x[:3]).as_matrix()[None]
+            p = residuals.to_object_frame(R, x[None, 3:], g.contacts.points)
+            r_n = residuals.normal_residuals(R, normals, g.contacts.finger_normals)
+            return np.concatenate([r_n.ravel() / tol.normal_noise,
+                                   residuals.offset_residuals(p, normals, offsets).ravel() / tol.position_noise])
+        T0 = arrays.poses[0]
+        x0 = np.concatenate([Rotation.from_matrix(T0[:3, :3]).as_rotvec(), T0[:3, 3]])
+        sol = least_squares(fun, x0, xtol=1e-15, ftol=1e-15, gtol=1e-15)
+        T = ref.poses[0]
+        R_sol = Rotation.from_rotvec(sol.x[:3]).as_matrix()
+        assert abs(ref.chi2[0] - 2 * sol.cost) <= 1e-9 * max(1.0, ref.chi2[0])
+        # equal to a millionth of the noise: far below anything the data can tell apart
+        assert np.linalg.norm(Rotation.from_matrix(T[:3, :3].T @ R_sol).as_rotvec()) < 1e-6 * tol.normal_noise
+        assert np.linalg.norm(T[:3, 3] - sol.x[3:]) < 1e-6 * tol.position_noise
+        # and the refinement improves on the closed form of the same cost
+        assert 2 * sol.cost <= np.sum(fun(x0) ** 2) + 1e-12
+
+
+def test_covariance_is_inverse_gauss_newton_hessian(rock):
+    rng = np.random.default_rng(12)
+    tol = _tolerance(rock)
+    for robust in ("none", "huber"):
+        g = _grasp(rock, rng, n=5)
+        arrays = closed_form_arrays(rock, g.contacts, g.facets[None], tol)
+        ref = fg.refine_hypotheses(rock, g.contacts, arrays, tol, robust=robust, params=_tight_params())
+        cov = ref.covariance[0]
+        assert np.allclose(cov, cov.T, rtol=0, atol=1e-12 * np.abs(cov).max())
+        assert np.linalg.eigvalsh(cov).min() > 0
+        _, J = fg.contact_residuals(ref.poses[0], fg.pack_contacts(rock, g.contacts, g.facets),
+                                    fg.kernel_params(tol, robust))
+        np.testing.assert_allclose(cov, np.linalg.inv(J.T @ J), rtol=1e-6, atol=1e-9 * np.abs(cov).max())
+
+
+# -------------------------------------------------------------------- prior ---
+
+def test_prior_pulls_the_estimate(rock):
+    rng = np.random.default_rng(13)
+    tol = _tolerance(rock)
+    g = _grasp(rock, rng, frac=0.0, deg=0.0)
+    arrays = closed_form_arrays(rock, g.contacts, g.facets[None], tol)
+    prior_pose = gtsam.Pose3(g.pose).retract(np.r_[np.radians([3.0, -2.0, 2.0]), 0.004, 0.003, -0.004]).matrix()
+    dist = []
+    covs = []
+    for sig_deg, sig_t in [(90.0, 1.0), (1.0, 0.001), (0.01, 1e-5)]:
+        prior = PosePrior(prior_pose, sigma_rot_deg=sig_deg, sigma_trans=sig_t)
+        ref = fg.refine_hypotheses(rock, g.contacts, arrays, tol, prior=prior, robust="none")
+        T = ref.poses[0]
+        dist.append((rotation_error_deg(T, prior_pose), translation_error(T, prior_pose)))
+        covs.append(ref.covariance[0])
+    d_truth = (rotation_error_deg(g.pose, prior_pose), translation_error(g.pose, prior_pose))
+    assert dist[0][0] == pytest.approx(d_truth[0], abs=0.01)  # weak prior: the contacts decide
+    assert dist[0][0] > dist[1][0] > dist[2][0] and dist[0][1] > dist[1][1] > dist[2][1]
+    assert dist[2][0] < 0.05 and dist[2][1] < 1e-4 * rock.diameter  # strong prior: the prior decides
+    assert np.linalg.det(covs[1]) < np.linalg.det(covs[0])
+
+
+def test_prior_picks_the_symmetric_twin_near_it(box):
+    """The box's contacts fit its symmetric twins equally; a prior at the truth decides."""
+    rng = np.random.default_rng(14)
+    tol = _tolerance(box)
+    hits = 0
+    for _ in range(5):
+        g = simulate.grasp(box, rng, n=4, position_noise=tol.position_noise, normal_noise_deg=1.0)
+        arrays = localize(box, g.contacts, position_noise=tol.position_noise, normal_noise_deg=1.0).hypotheses.arrays
+        prior = PosePrior(g.pose, sigma_rot_deg=10.0, sigma_trans=0.05 * box.diameter)
+        ref = fg.refine_hypotheses(box, g.contacts, arrays, tol, prior=prior)
+        hits += rotation_error_deg(ref.poses[0], g.pose) < 5.0
+        assert ref.determined.all()  # the prior determines every hypothesis
+    assert hits == 5
+
+
+def test_prior_closed_form_is_exact_on_noise_free_contacts(box):
+    rng = np.random.default_rng(15)
+    tol = _tolerance(box)
+    g = simulate.grasp(box, rng, n=4)
+    prior = PosePrior(g.pose, sigma_rot_deg=10.0, sigma_trans=0.01)
+    normals = box.planes.normals[g.facets][None]
+    R, t = fg.prior_closed_form(normals, box.planes.offsets[g.facets][None], g.contacts.points,
+                                g.contacts.finger_normals, tol, prior)
+    np.testing.assert_allclose(R[0], g.pose[:3, :3], atol=1e-9)
+    np.testing.assert_allclose(t[0], g.pose[:3, 3], atol=1e-9)
+    assert fg.prior_mahalanobis2(R, t, prior)[0] == pytest.approx(0.0, abs=1e-12)
+
+
+# ------------------------------------------------------------------- robust ---
+
+def test_robust_kernel_limits_one_displaced_contact(rock):
+    """Influence of one contact moved 40 σ off its plane: how far it drags the estimate
+    from the estimate without it (same facets, same noise)."""
+    rng = np.random.default_rng(16)
+    tol = _tolerance(rock)
+    shift = {k: [] for k in KERNELS}
+    for _ in range(5):
+        g = _grasp(rock, rng, n=5)
+        clean = fg.refine_hypotheses(rock, g.contacts, closed_form_arrays(rock, g.contacts, g.facets[None], tol),
+                                     tol, robust="none").poses[0]
+        points = g.contacts.points.copy()
+        points[0] += 0.1 * rock.diameter * g.contacts.object_normals[0]
+        bad = Contacts(points, finger_normals=g.contacts.finger_normals)
+        arrays = closed_form_arrays(rock, bad, g.facets[None], tol)
+        for robust in KERNELS:
+            T = fg.refine_hypotheses(rock, bad, arrays, tol, robust=robust).poses[0]
+            shift[robust].append(translation_error(T, clean))
+    none, huber, cauchy = (np.median(shift[k]) for k in KERNELS)
+    assert huber < 0.6 * none and cauchy < 0.5 * huber
+    assert cauchy < 0.01 * rock.diameter < none
+
+
+# ------------------------------------------------------ scores, ambiguity ---
+
+def test_probabilities_and_evidence(rock):
+    rng = np.random.default_rng(17)
+    tol = _tolerance(rock)
+    seen = 0
+    while seen < 3:
+        g = simulate.grasp(rock, rng, n=4, position_noise=tol.position_noise, normal_noise_deg=1.0)
+        arrays = localize(rock, g.contacts, position_noise=tol.position_noise, normal_noise_deg=1.0).hypotheses.arrays
+        if len(arrays.cost) < 3:
+            continue
+        seen += 1
+        ref = fg.refine_hypotheses(rock, g.contacts, arrays, tol, k=5)
+        assert len(ref) == min(5, len(arrays.cost))
+        assert ref.probability.sum() == pytest.approx(1.0, abs=1e-12)
+        assert np.all(np.diff(ref.probability) <= 1e-15)
+        sign, logdet = np.linalg.slogdet(2 * np.pi * ref.covariance[0])
+        assert ref.log_evidence[0] == pytest.approx(-0.5 * ref.chi2[0] + 0.5 * logdet, rel=1e-12)
+        np.testing.assert_array_equal(ref.facets, arrays.facets[ref.index])
+        assert set(ref.index) == set(range(len(ref)))  # no prior: the closed-form top k
+
+
+def test_underdetermined_hypothesis_gets_no_probability(box):
+    """All four contacts on one face: a pose family without a prior."""
+    rng = np.random.default_rng(18)
+    tol = _tolerance(box)
+    top = np.flatnonzero(box.planes.normals[:, 2] > 0.99)
+    g = simulate.grasp(box, rng, n=4, facets=top[:4])
+    arrays = closed_form_arrays(box, g.contacts, g.facets[None], tol)
+    ref = fg.refine_hypotheses(box, g.contacts, arrays, tol)
+    assert not ref.determined[0] and np.isnan(ref.covariance[0]).all() and np.isnan(ref.probability[0])
+    prior = PosePrior(g.pose, sigma_rot_deg=10.0, sigma_trans=0.01)
+    ref = fg.refine_hypotheses(box, g.contacts, arrays, tol, prior=prior)
+    assert ref.determined[0] and ref.probability[0] == 1.0
+
+
+def _classes(model, poses, probability):
+    """Pose classes of hypotheses with the given poses and factor-graph probabilities."""
+    k = len(poses)
+    z = np.zeros(k)
+    fit = PoseFit(np.asarray(poses)[:, :3, :3], np.asarray(poses)[:, :3, 3], np.zeros((k, 3, 3)),
+                  np.zeros((k, 3), bool), np.zeros((k, 3)), np.zeros(k, bool))
+    arrays = HypothesisArrays(np.zeros((k, 4), int), np.asarray(poses), -np.log(probability), z,
+                              np.zeros((k, 4, 5)), fit, np.tile(np.eye(6), (k, 1, 1)), np.asarray(probability))
+    return pose_classes(model, arrays, 4, fits=np.ones(k, bool))
+
+
+def test_ambiguous_rule(box):
+    twin = simulate.pose_from((0.0, 0.0, np.pi))  # the box's 180° symmetry about z
+    other = simulate.pose_from((np.pi / 2, 0.0, 0.0))  # a different placement
+    eye = np.eye(4)
+    assert not ambiguous(_classes(box, [eye, twin], [0.5, 0.5]))
+    classes = _classes(box, [eye, twin, other], [0.45, 0.45, 0.10])
+    assert ambiguous(classes) and classes[1].best == 2 and classes[1].probability == pytest.approx(0.10)
+    assert not ambiguous(_classes(box, [eye, other], [0.97, 0.03]))
+    assert ambiguous(_classes(box, [eye, other], [0.97, 0.03]), threshold=0.02)
+
+
+def test_bad_input_raises(rock):
+    rng = np.random.default_rng(19)
+    tol = _tolerance(rock)
+    g = _grasp(rock, rng)
+    arrays = closed_form_arrays(rock, g.contacts, g.facets[None], tol)
+    with pytest.raises(ContactPoseError, match="robust"):
+        fg.refine_hypotheses(rock, g.contacts, arrays, tol, robust="tukey")
+    with pytest.raises(ContactPoseError, match="k must"):
+        fg.refine_hypotheses(rock, g.contacts, arrays, tol, k=-1)
+    with pytest.raises(ContactPoseError, match="prior"):
+        fg.refine_hypotheses(rock, g.contacts, arrays, tol, prior=np.eye(4))
+    five = _grasp(rock, rng, n=5)
+    with pytest.raises(ContactPoseError, match=r"\(H, 5\)"):
+        fg.refine_hypotheses(rock, five.contacts, arrays, tol)
+
+
+# -------------------------------------------- selection, patches, two-stage ---
+
+def test_prior_gate_keeps_consistent_rotations(box):
+    rng = np.random.default_rng(20)
+    tol = _tolerance(box)
+    checked = 0
+    for _ in range(10):
+        g = simulate.grasp(box, rng, n=4, position_noise=tol.position_noise, normal_noise_deg=1.0)
+        arrays = localize(box, g.contacts, position_noise=tol.position_noise, normal_noise_deg=1.0).hypotheses.arrays
+        if len(arrays.cost) == 0:
+            continue
+        prior = PosePrior(g.pose, sigma_rot_deg=10.0, sigma_trans=0.05 * box.diameter)
+        keep = fg.prior_gate(box, arrays, tol, prior)
+        err = rotation_error_deg(arrays.poses, g.pose)
+        normals = box.planes.normals[arrays.facets]
+        info_min = np.linalg.eigvalsh(4 * np.eye(3) - np.einsum("hni,hnj->hij", normals, normals))[:, 0]
+        assert keep[err < 5.0].all()  # consistent rotations always pass
+        assert not keep[(err > 90.0) & (info_min > 0.5)].any()  # determined and far off: dropped
+        checked += 1
+    assert checked >= 5
+
+
+def test_facets_follow_the_pose_within_a_patch(box):
+    """With patches, a contact assigned to the wrong member of its (flat) patch moves to the
+    member under it, so the lateral residual does not hold the pose to the wrong triangle."""
+    rng = np.random.default_rng(21)
+    tol = _tolerance(box)
+    labels = box.patches.labels
+    g = simulate.grasp(box, rng, n=4, where="centroid", facets=[0, 9, 17, 30])
+    wrong = g.facets.copy()
+    for i, f in enumerate(g.facets):  # another member of the same patch
+        members = box.patches.of(labels[f])
+        wrong[i] = members[members != f][0]
+    assert not np.array_equal(wrong, g.facets)
+    arrays = closed_form_arrays(box, g.contacts, wrong[None], tol)
+    prior = PosePrior(g.pose, sigma_rot_deg=10.0, sigma_trans=0.05 * box.diameter)
+    ref = fg.refine_hypotheses(box, g.contacts, arrays, tol, prior=prior)
+    np.testing.assert_array_equal(ref.facets[0], g.facets)
+    assert rotation_error_deg(ref.poses[0], g.pose) < 1.0 and ref.contact_chi2[0] < 1.0
+
+
+def test_screen_and_polish_match_a_tight_single_pass(rock):
+    rng = np.random.default_rng(22)
+    tol = _tolerance(rock)
+    for _ in range(3):
+        g = simulate.grasp(rock, rng, n=4, position_noise=tol.position_noise, normal_noise_deg=1.0)
+        arrays = localize(rock, g.contacts, position_noise=tol.position_noise, normal_noise_deg=1.0).hypotheses.arrays
+        fast = fg.refine_hypotheses(rock, g.contacts, arrays, tol)
+        tight = fg.refine_hypotheses(rock, g.contacts, arrays, tol, params=_tight_params())
+        assert fast.index[0] == tight.index[0]
+        xi = gtsam.Pose3(tight.poses[0]).localCoordinates(gtsam.Pose3(fast.poses[0]))
+        assert xi @ np.linalg.solve(tight.covariance[0], xi) < 0.05**2  # within 0.05 σ
+        assert abs(fast.probability[0] - tight.probability[0]) < 0.01
+
+
+# ----------------------------------------------- unassigned fingers, rescue ---
+
+def test_unassigned_finger_equals_refining_the_other_contacts(rock):
+    """A hypothesis with facet -1 for one finger refines exactly like its other contacts alone;
+    its χ² carries localize's OUTLIER_PENALTY on top."""
+    from contactpose.types import OUTLIER_PENALTY
+
+    rng = np.random.default_rng(23)
+    tol = _tolerance(rock)
+    for robust in KERNELS:
+        g = _grasp(rock, rng, n=5)
+        keep = np.array([0, 1, 3, 4])
+        sub = g.contacts.permuted(keep)
+        sub_arrays = closed_form_arrays(rock, sub, g.facets[keep][None], tol)
+        alone = fg.refine_hypotheses(rock, sub, sub_arrays, tol, robust=robust, params=_tight_params())
+        wild = fg.refine_hypotheses(rock, g.contacts, sub_arrays.widened(keep, 5, OUTLIER_PENALTY), tol,
+                                    robust=robust, params=_tight_params())
+        np.testing.assert_array_equal(wild.facets[0], [*g.facets[:2], -1, *g.facets[3:]])
+        np.testing.assert_allclose(wild.poses[0], alone.poses[0], atol=1e-9)
+        np.testing.assert_allclose(wild.covariance[0], alone.covariance[0], rtol=1e-6,
+                                   atol=1e-9 * np.abs(alone.covariance[0]).max())
+        assert wild.chi2[0] == pytest.approx(alone.chi2[0] + OUTLIER_PENALTY, rel=1e-6)
+        assert wild.contact_chi2[0] == pytest.approx(alone.contact_chi2[0], rel=1e-6)
+
+
+@pytest.mark.filterwarnings("ignore:contacts span")  # the displaced contact may lie off the object
+def test_localize_leaves_a_displaced_finger_out(rock):
+    """localize(max_outliers=1, solver="factor-graph"): the contact moved by 20 % of the
+    diameter is the unassigned finger of the top hypothesis, the true tuple is among the
+    hypotheses, and the top pose places the surface right (ADD-S, the pose-class criterion)
+    unless the status says "ambiguous"."""
+    from contactpose.geometry.metrics import SAME_CLASS_ADDS_FRAC, adds
+
+    rng = np.random.default_rng(24)
+    tol = _tolerance(rock)
+    for j in range(3):
+        g = simulate.grasp(rock, rng, n=5, position_noise=tol.position_noise, normal_noise_deg=1.0)
+        points = g.contacts.points.copy()
+        points[j] += 0.2 * rock.diameter * np.array([0.6, -0.8, 0.0])
+        bad = Contacts(points, finger_normals=g.contacts.finger_normals)
+        r = localize(rock, bad, position_noise=tol.position_noise, max_outliers=1, solver="factor-graph")
+        best = r.best
+        np.testing.assert_array_equal(best.outliers, [j])
+        assert np.isnan(best.residuals[j]).all() and np.isfinite(np.delete(best.residuals, j, axis=0)).all()
+        truth = np.where(np.arange(5) == j, -1, g.facets)
+        assert any(np.array_equal(h.facets, truth) for h in r.hypotheses)
+        if r.status != "ambiguous":
+            error = adds(best.pose, g.pose, rock.surface_points, rock.surface_tree)
+            assert error < SAME_CLASS_ADDS_FRAC * rock.diameter
+        assert sum(h.probability for h in r.hypotheses) == pytest.approx(1.0)
+
+
+def test_posterior_along_a_free_direction_is_the_prior(box):
+    """Contacts on the four side faces leave the translation along the box's z axis free:
+    with a prior, the estimate along it is the prior's and so is its marginal variance."""
+    tol = _tolerance(box)
+    sides = [f for f in range(box.num_facets) if abs(box.planes.normals[f, 2]) < 0.5]
+    by_normal = {tuple(np.round(box.planes.normals[f])): f for f in sides}
+    facets = [by_normal[k] for k in [(1.0, 0.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, -1.0, 0.0)]]
+    g = simulate.grasp(box, np.random.default_rng(25), n=4, facets=facets, where="centroid")
+    arrays = closed_form_arrays(box, g.contacts, g.facets[None], tol)
+    assert arrays.fit.free_translation_mask[0].sum() == 1
+    sigma_t = 0.05 * box.diameter
+    offset = 0.3 * sigma_t
+    prior_pose = g.pose.copy()
+    prior_pose[:3, 3] += offset * g.pose[:3, 2]  # along the free (body z) axis
+    prior = PosePrior(prior_pose, sigma_rot_deg=10.0, sigma_trans=sigma_t)
+    ref = fg.refine_hypotheses(box, g.contacts, arrays, tol, prior=prior, robust="none", params=_tight_params())
+    T = ref.poses[0]
+    assert (T[:3, 3] - g.pose[:3, 3]) @ g.pose[:3, 2] == pytest.approx(offset, rel=1e-6)
+    assert ref.covariance[0][5, 5] == pytest.approx(sigma_t**2, rel=1e-6)  # tangent z = body z
+    assert ref.covariance[0][3, 3] < 2.0 * tol.position_noise**2  # determined by the contacts
+
+
+def test_prior_rescues_a_search_that_lost_the_true_tuple(rock, monkeypatch):
+    """One normal 5 σ off: the pair gates drop the true tuple, and the tuples left contradict
+    the prior. With the prior, localize searches again at RESCUE_WIDEN x the tolerances and
+    says so; with the wider search disabled (RESCUE_WIDEN = 1), it adds each contact's best
+    facet under the prior pose."""
+    rng = np.random.default_rng(3)
+    g = simulate.grasp(rock, rng, n=4)
+    normals = g.contacts.object_normals.copy()
+    axis = np.cross(normals[0], [1.0, 0.0, 0.0])
+    normals[0] = Rotation.from_rotvec(np.radians(5.0) * axis / np.linalg.norm(axis)).apply(normals[0])
+    contacts = Contacts(g.contacts.points, object_normals=normals)
+    sx = 0.0025 * rock.diameter
+    plain = localize(rock, contacts, position_noise=sx, solver="factor-graph")
+    assert all(rotation_error_deg(h.pose, g.pose) > 10.0 for h in plain.hypotheses)  # the true tuple is lost
+    prior = PosePrior(g.pose, sigma_rot_deg=2.0, sigma_trans=0.01 * rock.diameter)
+    stages = [(fg.RESCUE_WIDEN, r"searched again with 2x the pair tolerances$"), (1.0, "best-fitting facet")]
+    for widen, message in stages:
+        monkeypatch.setattr(fg, "RESCUE_WIDEN", widen)
+        with pytest.warns(UserWarning, match=message):
+            r = localize(rock, contacts, position_noise=sx, prior=prior, solver="factor-graph")
+        np.testing.assert_array_equal(r.best.facets, g.facets)
+        assert rotation_error_deg(r.best.pose, g.pose) < 3.0
+        assert re.search(message.rstrip("$"), r.hint)   # the result says so too
+
+
+def test_prior_makes_an_underdetermined_grasp_determined(box):
+    """Two contacts leave pose directions free: without a prior the status says so; with a
+    prior the factor graph's covariance is finite and the status no longer does."""
+    g = simulate.grasp(box, np.random.default_rng(26), n=2, position_noise=0.0005, normal_noise_deg=1.0,
+                       noise="bounded")
+    noise = dict(position_noise=0.0005, normal_noise_deg=1.0, solver="factor-graph")
+    assert localize(box, g.contacts, **noise).status == "underdetermined"
+    prior = PosePrior(g.pose, sigma_rot_deg=10.0, sigma_trans=0.05 * box.diameter)
+    r = localize(box, g.contacts, prior=prior, **noise)
+    assert r.status != "underdetermined"
+    assert np.isfinite(r.best.covariance).all()
