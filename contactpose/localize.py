@@ -21,15 +21,17 @@ from itertools import combinations
 import numpy as np
 
 from contactpose.contacts import Contacts, Tolerance
-from contactpose.errors import ContactPoseError, ResourceError, check_count
+from contactpose.errors import ContactPoseError, ContactsError, ResourceError, check_count
 from contactpose.model.patches import nearest_members
+from contactpose.progress import Deadline
 from contactpose.scoring import rank as ranking
 from contactpose.scoring.classes import MAX_CLASS_HYPOTHESES, pose_classes
 from contactpose.scoring.freespace import free_space_violations
 from contactpose.scoring.infacet import within_noise
 from contactpose.scoring.status import status as status_of
+from contactpose.scoring.status import units_message
 from contactpose.search.pairs import admissible_pairs, pair_conditions
-from contactpose.search.tree import TripleTest, join_tuples, join_tuples_paper
+from contactpose.search.tree import TripleTest, expected_tuples, join_tuples, join_tuples_paper
 from contactpose.solvers import factor_graph as fg
 from contactpose.solvers import residuals as res
 from contactpose.solvers.closed_form import fit_poses
@@ -47,13 +49,27 @@ from contactpose.types import (
     fit_threshold,
 )
 
+#: Seconds a search may take by default before it returns what it found (status "time_limit").
+DEFAULT_TIME_LIMIT = 60.0
+#: Share of the time left that the tree may take; the poses and ranking get the rest.
+TREE_SHARE = 0.25
+#: Hypotheses posed and ranked at a time (the grain of their deadline checks).
+POSE_CHUNK = 65_536
+#: Contacts spread wider than this many object diameters are an input error (units).
+UNITS_ERROR_RATIO = 10.0
+#: The tree warns when it is estimated to hold more tuples than this, and estimates only
+#: when every finger pair admits more facet pairs than EXPLOSION_CHECK_PAIRS.
+EXPLOSION_TUPLES = 1e6
+EXPLOSION_CHECK_PAIRS = 10_000
+
 __all__ = ["classify", "drop_blocked", "find_pairs", "join_hypotheses", "localize", "pose_hypotheses",
            "rank_hypotheses", "refine_hypotheses", "search"]
 
 
 def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prior=None,
              method="fast", solver=None, top=None, model_error=0.0, max_outliers=0, robust="huber",
-             refine=DEFAULT_REFINE, samples=0, seed=None, sample_top=1, finger_radius=None):
+             refine=DEFAULT_REFINE, samples=0, seed=None, sample_top=1, finger_radius=None,
+             time_limit=DEFAULT_TIME_LIMIT, progress=None):
     """Find every admissible finger-to-facet assignment and the object pose behind each.
 
     model : ObjectModel; contacts : Contacts (world frame); position_noise : per-axis σ of
@@ -72,9 +88,12 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
     seed makes the sampling repeatable. finger_radius : drop the hypotheses that put a
     contact where no finger of this radius fits (its outward normal ray of that length
     re-enters the posed object: contactpose.scoring.freespace); underdetermined hypotheses are
-    kept, since their pose is one arbitrary member of a family.
+    kept, since their pose is one arbitrary member of a family. time_limit : seconds for the
+    search (None: unbounded); when it runs out, the hypotheses found so far are returned with
+    status "time_limit". progress : tqdm bars (None: on a terminal, for work over a second).
     """
     method, solver = _check_options(method, solver, top, contacts, prior)
+    deadline = Deadline(_check_time_limit(time_limit))
     if robust not in ROBUST:
         raise ContactPoseError(f"robust must be one of {ROBUST}, got {robust!r}")
     max_outliers = _check_outliers(max_outliers, method, contacts.n)
@@ -85,11 +104,12 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
     _warn_units(model, contacts, tolerance)
     start = time.perf_counter()
     pose_solver = "closed-form" if solver == "factor-graph" else solver
-    arrays, timing = search(model, contacts, tolerance, method=method, solver=pose_solver, prior=prior)
+    arrays, timing = search(model, contacts, tolerance, method=method, solver=pose_solver, prior=prior,
+                            deadline=deadline, progress=progress)
     for dropped in _outlier_sets(contacts.n, max_outliers):
         keep = np.setdiff1d(np.arange(contacts.n), dropped)
         sub, sub_timing = search(model, contacts.permuted(keep), tolerance, method=method, solver=pose_solver,
-                                 prior=prior)
+                                 prior=prior, deadline=deadline, progress=progress)
         arrays = arrays.merged(sub.widened(keep, contacts.n, len(dropped) * OUTLIER_PENALTY))
         timing = {k: timing[k] + sub_timing[k] for k in timing}
     if finger_radius is not None:
@@ -102,7 +122,7 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
         arrays, rescue = refine_hypotheses(model, contacts, arrays, tolerance, prior=prior, robust=robust, k=refine)
         timing["refine"] = time.perf_counter() - refine_start
     classes_start = time.perf_counter()
-    classes, status, hint = classify(model, contacts, arrays, tolerance, method=method)
+    classes, status, hint = classify(model, contacts, arrays, tolerance, method=method, deadline=deadline)
     if rescue:
         hint = f"{hint}; {rescue}" if hint else rescue
     num = len(arrays.cost)
@@ -124,26 +144,50 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
 
 # ------------------------------------------------------------------ stages ---
 
-def search(model, contacts, tolerance, *, method="fast", solver=None, prior=None):
+def search(model, contacts, tolerance, *, method="fast", solver=None, prior=None, deadline=None, progress=None):
     """All stages up to the ranking: S_ij -> tree -> poses -> ranked HypothesisArrays.
 
-    Returns (HypothesisArrays, seconds per stage: "pairs", "tree", "pose", "rank").
+    deadline : a progress.Deadline. The tree may spend TREE_SHARE of what is left of it;
+    the poses and the ranking then run POSE_CHUNK hypotheses at a time until it passes
+    (``deadline.hit`` tells whether anything stopped early). Returns (HypothesisArrays,
+    seconds per stage: "pairs", "tree", "pose", "rank").
     """
     solver = solver or ("closed-form" if method == "fast" else "lm")
+    deadline = deadline or Deadline()
     clock = [time.perf_counter()]
     S = find_pairs(model, contacts, tolerance, method=method)
     clock.append(time.perf_counter())
-    facets = join_hypotheses(model, contacts, S, tolerance, method=method, prior=prior)
+    tree_deadline = Deadline(None if deadline.seconds is None else TREE_SHARE * deadline.remaining())
+    facets = join_hypotheses(model, contacts, S, tolerance, method=method, prior=prior, deadline=tree_deadline,
+                             progress=progress)
+    deadline.hit |= tree_deadline.hit
     clock.append(time.perf_counter())
-    fit, paper_cost = pose_hypotheses(model, contacts, facets, tolerance, method=method, solver=solver, prior=prior)
-    clock.append(time.perf_counter())
-    arrays = ranking.hypothesis_arrays(model, contacts, facets, fit, tolerance, method=method, paper_cost=paper_cost)
-    clock.append(time.perf_counter())
-    timing = dict(zip(("pairs", "tree", "pose", "rank"), np.diff(clock).tolist()))
+    timing = dict(zip(("pairs", "tree"), np.diff(clock).tolist()), pose=0.0, rank=0.0)
+    arrays = None
+    for lo in range(0, max(len(facets), 1), POSE_CHUNK):
+        if lo and deadline.passed:
+            break
+        part = _pose_and_rank(model, contacts, facets[lo:lo + POSE_CHUNK], tolerance, method, solver, prior,
+                              deadline, progress, timing)
+        arrays = part if arrays is None else arrays.merged(part)
     if method == "fast":
+        start = time.perf_counter()
         arrays = ranking.polish(model, contacts, arrays, tolerance)
-        timing["pose"] += time.perf_counter() - clock[-1]
+        timing["pose"] += time.perf_counter() - start
     return arrays, timing
+
+
+def _pose_and_rank(model, contacts, facets, tolerance, method, solver, prior, deadline, progress, timing):
+    """pose_hypotheses then rank_hypotheses of some tuples, adding their seconds to timing."""
+    start = time.perf_counter()
+    fit, paper_cost = pose_hypotheses(model, contacts, facets, tolerance, method=method, solver=solver, prior=prior,
+                                      deadline=deadline, progress=progress)
+    facets = facets[:len(fit.t)]  # LM stops at the deadline
+    posed = time.perf_counter()
+    arrays = ranking.hypothesis_arrays(model, contacts, facets, fit, tolerance, method=method, paper_cost=paper_cost)
+    timing["pose"] += posed - start
+    timing["rank"] += time.perf_counter() - posed
+    return arrays
 
 
 def find_pairs(model, contacts, tolerance, *, method="fast"):
@@ -159,25 +203,30 @@ def find_pairs(model, contacts, tolerance, *, method="fast"):
                             patches=fast and model.patch_table is not None)
 
 
-def join_hypotheses(model, contacts, S, tolerance, *, method="fast", prior=None):
+def join_hypotheses(model, contacts, S, tolerance, *, method="fast", prior=None, deadline=None, progress=None):
     """The tree T over S_ij: facet tuples (H, n) int, one finger per column.
 
     "fast" joins level by level with the handedness test on triples (on patches, one
     tuple per patch tuple: see :func:`_patch_hypotheses`); "paper" node by node (§3.2).
+    Warns when the pair sets predict more than EXPLOSION_TUPLES tuples (search.tree.expected_tuples).
     """
     if method == "paper":
-        return join_tuples_paper(S, contacts.n)
+        _warn_explosion(S, contacts.n, tolerance, model)
+        return join_tuples_paper(S, contacts.n, deadline=deadline, progress=progress)
     if model.patch_table is not None:
-        return _patch_hypotheses(model, contacts, S, tolerance, prior)
+        return _patch_hypotheses(model, contacts, S, tolerance, prior, deadline, progress)
     triple = TripleTest(model.planes.normals, contacts.object_normals, tolerance.per_contact_bounds()[1])
-    return join_tuples(S, contacts.n, triple)
+    _warn_explosion(S, contacts.n, tolerance, model, triple)
+    return join_tuples(S, contacts.n, triple, deadline=deadline, progress=progress)
 
 
-def pose_hypotheses(model, contacts, facets, tolerance, *, method="fast", solver=None, prior=None):
+def pose_hypotheses(model, contacts, facets, tolerance, *, method="fast", solver=None, prior=None, deadline=None,
+                    progress=None):
     """A pose per hypothesis: the closed form (origin-invariant cost for "fast", eq. (7)
     for "paper"), or LM on eq. (7) from the prior (or identity) with solver="lm".
 
-    facets : (H, n) int -> (PoseFit, eq. (7) cost (H,) from LM or None).
+    facets : (H, n) int -> (PoseFit, eq. (7) cost (H,) from LM or None). LM stops at a
+    passed deadline: then the fit and cost cover the first hypotheses only.
     """
     solver = solver or ("closed-form" if method == "fast" else "lm")
     normals = model.planes.normals[facets]
@@ -189,7 +238,8 @@ def pose_hypotheses(model, contacts, facets, tolerance, *, method="fast", solver
     if solver == "closed-form":
         return fit, None
     T, cost, _ = fit_lm_all(normals, offsets, contacts.points, contacts.finger_normals,
-                            np.eye(4) if prior is None else prior.pose)
+                            np.eye(4) if prior is None else prior.pose, deadline=deadline, progress=progress)
+    fit = fit.take(slice(0, len(T)))
     fit.R, fit.t = T[:, :3, :3], T[:, :3, 3]
     return fit, cost
 
@@ -241,28 +291,36 @@ def drop_blocked(model, contacts, arrays, finger_radius):
     return arrays.take(np.flatnonzero(~(bad & ~arrays.fit.underdetermined)))
 
 
-def classify(model, contacts, arrays, tolerance, *, method="fast"):
-    """Pose classes of the hypotheses that fit within noise, and the status with its hint.
+def classify(model, contacts, arrays, tolerance, *, method="fast", deadline=None):
+    """Pose classes of the hypotheses that fit within noise, and the status with its hint
+    (scoring.status; deadline : the search's progress.Deadline: once passed, the fit test
+    stops and the status is "time_limit").
 
     "fast" decides "fits" by the in-facet lower bound on the best χ² (scoring.infacet),
     "paper" by the χ² at the pose. Returns (list of PoseClass, status, hint).
     """
-    fits = None if method == "paper" else within_noise(model, contacts, arrays, tolerance, fit_threshold(contacts.n),
-                                                       enough=MAX_CLASS_HYPOTHESES)
+    if method == "paper":
+        fits = arrays.chi2 <= fit_threshold(contacts.n)
+    else:
+        fits = within_noise(model, contacts, arrays, tolerance, fit_threshold(contacts.n), enough=MAX_CLASS_HYPOTHESES,
+                            deadline=deadline)
     classes = pose_classes(model, arrays, contacts.n, fits)
-    status, hint = status_of(model, contacts, arrays, classes, tolerance)
+    truncated = deadline is not None and deadline.hit
+    status, hint = status_of(model, contacts, arrays, classes, tolerance, fits, truncated)
     return classes, status, hint
 
 
 # ----------------------------------------------------------------- helpers ---
 
-def _patch_hypotheses(model, contacts, S, tolerance, prior):
+def _patch_hypotheses(model, contacts, S, tolerance, prior, deadline=None, progress=None):
     """Facet tuples from the patch-level tree, one per patch tuple: pose it on the patch
     planes, give each contact the member facet nearest to it, re-pose on those facets and
     take the nearest members again (research/design.md)."""
     patches = model.patches
     angle = tolerance.per_contact_bounds()[1] + float(patches.cone.max())
-    tuples = join_tuples(S, contacts.n, TripleTest(patches.normals, contacts.object_normals, angle))
+    triple = TripleTest(patches.normals, contacts.object_normals, angle)
+    _warn_explosion(S, contacts.n, tolerance, model, triple)
+    tuples = join_tuples(S, contacts.n, triple, deadline=deadline, progress=progress)
     t0 = None if prior is None else np.broadcast_to(prior.pose[:3, 3], (len(tuples), 3))
     normals, offsets, centres = patches.normals[tuples], patches.offsets[tuples], patches.centres[tuples]
     for _ in range(2):
@@ -317,7 +375,31 @@ def _check_span(model, conditions, tolerance):
 
 
 def _warn_units(model, contacts, tolerance):
+    """Contacts spread wider than the object: a warning, an error when far beyond (units)."""
     spread = contacts.spread
+    if spread > UNITS_ERROR_RATIO * (model.diameter + tolerance.distance):
+        raise ContactsError(units_message(spread, model.diameter))
     if spread > model.diameter + tolerance.distance:
-        warnings.warn(f"contacts span {spread:.4g}, more than the object's diameter {model.diameter:.4g}: "
-                      "are contacts and mesh in the same units?", stacklevel=3)
+        warnings.warn(units_message(spread, model.diameter), stacklevel=3)
+
+
+def _warn_explosion(S, n, tolerance, model, triple=None):
+    """Warn when the tree would hold more than EXPLOSION_TUPLES tuples (estimated from a
+    sample of its start nodes, when the smallest pair set has more than EXPLOSION_CHECK_PAIRS)."""
+    if min(len(pairs) for pairs in S.values()) <= EXPLOSION_CHECK_PAIRS:
+        return
+    expected = expected_tuples(S, n, triple)
+    if expected > EXPLOSION_TUPLES:
+        warnings.warn(f"the search may explode: about {expected:.2g} hypotheses expected from the pair sets "
+                      f"(tolerances ±{tolerance.distance:.3g} and ±{np.degrees(tolerance.angle):.3g}° on "
+                      f"{model.num_facets} facets); state smaller noise, use a coarser mesh or set time_limit",
+                      stacklevel=4)
+
+
+def _check_time_limit(time_limit):
+    if time_limit is None:
+        return None
+    if isinstance(time_limit, bool) or not isinstance(time_limit, (int, float, np.integer, np.floating)) \
+            or not time_limit > 0:
+        raise ContactPoseError(f"time_limit must be a positive number of seconds or None, got {time_limit!r}")
+    return float(time_limit)

@@ -101,6 +101,11 @@ class Touch:
     family_gain: float = 0.0
 
     @property
+    def determined(self):
+        """Nothing left to separate: one pose class, and no pose family to narrow down."""
+        return len(self.probabilities) <= 1 and self.family_gain <= GAIN_TIE_BITS
+
+    @property
     def outcomes(self):
         """Per class: {"kind": "miss" | "contact" | "blocked", "point", "normal", "group"}."""
         names = {MISS: "miss", CONTACT: "contact", BLOCKED: "blocked"}
@@ -109,7 +114,8 @@ class Touch:
                 for k, p, n, g in zip(self.kind, self.contact_points, self.contact_normals, self.groups)]
 
     def to_dict(self):
-        return {"point": self.point.tolist(), "direction": self.direction.tolist(), "start": self.start.tolist(),
+        return {"determined": self.determined,
+                "point": self.point.tolist(), "direction": self.direction.tolist(), "start": self.start.tolist(),
                 "expected_gain_bits": float(self.expected_gain), "family_gain_bits": float(self.family_gain),
                 "robustness": float(self.robustness),
                 "contact_share": None if self.contact_share is None else self.contact_share.tolist(),

@@ -489,13 +489,21 @@ def test_far_apart_contacts_are_not_called_duplicates():
     assert "same point" not in str(info.value)
 
 
-def test_contact_spread_larger_than_object_warns_about_units(box_small):
+def test_contacts_in_millimetres_are_an_error_naming_the_units(box_small):
     # the contacts of a 0.12 m box given in millimetres
     mm = Contacts(np.array([c["point"] for c in GOOD_CONTACTS]) * 1000,
                   finger_normals=[c["finger_normal"] for c in GOOD_CONTACTS])
-    result, messages = recorded(cp.localize, box_small, mm, position_noise=0.0005)
-    assert any("contacts span 53.85" in m and "diameter 0.1233" in m and "same units" in m for m in messages), messages
-    assert result.status == "no_hypothesis" and "wrong units?" in result.hint
+    with raises(ContactsError, "contacts span 53.85 but the model is 0.1233 across", "millimetres vs metres?"):
+        cp.localize(box_small, mm, position_noise=0.0005)
+
+
+def test_contact_spread_a_little_larger_than_object_warns_about_units(box_small):
+    wide = Contacts(np.array([c["point"] for c in GOOD_CONTACTS]) * 4,
+                    finger_normals=[c["finger_normal"] for c in GOOD_CONTACTS])
+    result, messages = recorded(cp.localize, box_small, wide, position_noise=0.0005)
+    assert any("contacts span 0.2154 but the model is 0.1233 across" in m and "same units?" in m
+               for m in messages), messages
+    assert result.status == "no_hypothesis" and "same units?" in result.hint
 
 
 # ----------------------------------------------------------------- prior files
@@ -969,8 +977,8 @@ def test_cli_units_warning_is_one_line(tmp_path, box_file, capsys):
         {"point": [0, 0, 0], "finger_normal": [0, 0, 1]}, {"point": [1, 0, 0], "finger_normal": [0, 0, 1]}]})
     assert cli.main(["localize", box_file, "--contacts", far]) == 0
     out, err = capsys.readouterr()
-    assert re.fullmatch(r"contactpose: warning: contacts span 1, .* same units\?\n", err), err
-    assert "status: no_hypothesis (contacts are 1 apart" in out and "wrong units?" in out
+    assert re.fullmatch(r"contactpose: warning: contacts span 1 but the model is .* same units\?\n", err), err
+    assert "status: no_hypothesis (contacts span 1 but" in out and "same units?" in out
 
 
 @pytest.mark.parametrize("argv,code", [(["localize", "{box}", "--contacts", "{far}"], 0),

@@ -383,12 +383,23 @@ def test_status_no_hypothesis_for_wrong_units(rock_model):
     rng = np.random.default_rng(9)
     g = simulate.grasp(rock_model, rng, n=4, noise="bounded", **NOISE)
     mm = Contacts(g.contacts.points * 1000.0, finger_normals=g.contacts.finger_normals)
-    with pytest.warns(UserWarning, match="units"):
-        r = localize(rock_model, mm, **NOISE)
-    assert r.status == "no_hypothesis"
-    assert "units" in r.hint
-    assert len(r.hypotheses) == 0 and r.best is None and r.num_hypotheses == 0
-    assert json.loads(json.dumps(r.to_dict(), allow_nan=False))["status"] == "no_hypothesis"
+    with pytest.raises(ContactsError, match="millimetres vs metres"):
+        localize(rock_model, mm, **NOISE)
+    wide = Contacts(g.contacts.points * 3.0, finger_normals=g.contacts.finger_normals)
+    if wide.spread > rock_model.diameter * 1.1:
+        with pytest.warns(UserWarning, match="same units"):
+            r = localize(rock_model, wide, **NOISE)
+        assert r.status == "no_hypothesis" and "same units" in r.hint
+        assert len(r.hypotheses) == 0 and r.best is None and r.num_hypotheses == 0
+        assert json.loads(json.dumps(r.to_dict(), allow_nan=False))["status"] == "no_hypothesis"
+
+
+def test_flipped_finger_normals_get_a_hint_about_the_sign(rock_model):
+    rng = np.random.default_rng(9)
+    g = simulate.grasp(rock_model, rng, n=4, noise="bounded", **NOISE)
+    flipped = Contacts(g.contacts.points, finger_normals=-g.contacts.finger_normals)
+    r = localize(rock_model, flipped, **NOISE)
+    assert r.status == "no_hypothesis" and "finger_normal points into the object" in r.hint
 
 
 def test_status_underdetermined_for_two_contacts(rock_model):

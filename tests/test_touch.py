@@ -157,7 +157,8 @@ def test_one_class_and_no_hypothesis(box_model):
             break
     touch = T.suggest_touch(box_model, r, rng=rng, n_candidates=20)
     assert touch.expected_gain == 0.0
-    far = Contacts(g.contacts.points * 50, finger_normals=g.contacts.finger_normals)
+    assert touch.determined == (touch.family_gain == 0.0) and touch.to_dict()["determined"] == touch.determined
+    far = Contacts(g.contacts.points * 5, finger_normals=g.contacts.finger_normals)
     with pytest.warns(UserWarning):
         none = localize(box_model, far, **NOISE)
     with pytest.raises(ContactPoseError, match="no hypothesis"):

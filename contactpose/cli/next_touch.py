@@ -39,6 +39,9 @@ def run(args):
     print(f"status: {result.status}  pose classes: {classes}"
           + (f" (probabilities {', '.join(f'{p:.2f}' for p in touch.probabilities)})" if classes > 1 else ""))
     fmt = lambda v: "[" + ", ".join(f"{x:.6g}" for x in v) + "]"
+    if touch.determined:
+        print("already determined: one pose class fits the contacts, no touch can separate anything; "
+              "the probe below only confirms it")
     print(f"next touch: point {fmt(touch.point)}  direction {fmt(touch.direction)}")
     print(f"start: {fmt(touch.start)}  expected gain: {touch.expected_gain:.3f} bits")
     for c, o in enumerate(touch.outcomes):

@@ -61,12 +61,13 @@ CHUNK = 64
 POLISH_ROUNDS = 2
 
 
-def within_noise(model, contacts, arrays, tolerance, threshold, enough=None):
+def within_noise(model, contacts, arrays, tolerance, threshold, enough=None, deadline=None):
     """(H,) bool: the hypotheses whose best full χ² (triangles included) may be within
     ``threshold``, by the lower bound above. arrays : HypothesisArrays.
 
     enough : check in rank order, CHUNK at a time, and stop once this many hypotheses are
     known to fit: the first ``enough`` fitting ones are exact, the rest may be left False.
+    deadline : a progress.Deadline; once passed (after the first chunk), the rest are left False.
     """
     chi2 = arrays.chi2
     lateral = arrays.residuals[..., 4] ** 2
@@ -84,6 +85,9 @@ def within_noise(model, contacts, arrays, tolerance, threshold, enough=None):
     for lo in range(0, len(check), chunk):
         if enough is not None and np.count_nonzero(ok[:check[lo]]) >= enough:
             ok[check[lo]:] = False
+            break
+        if lo and deadline is not None and deadline.passed:
+            ok[check[lo:]] = False
             break
         rows = check[lo:lo + chunk]
         ok[rows] = lowest_chi2_bound(model, contacts, arrays, rows, tolerance, threshold) <= threshold

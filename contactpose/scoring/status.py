@@ -1,45 +1,99 @@
 """The one status rule: what the ranked hypotheses and their pose classes say.
 
-* ``no_hypothesis``: nothing matched (the hint says why it may be);
+In this order:
+
+* ``no_hypothesis``: nothing matched (the hint says why it may be: units, flipped normals,
+  tolerances);
+* ``time_limit``: the search stopped at its time limit; the hypotheses found so far are
+  returned, best first, but the true one may be missing;
+* ``poor_fit``: the best hypothesis does not fit the contacts within noise (its best χ²,
+  triangles included, exceeds the FIT_CONFIDENCE quantile): the pose is a guess;
 * ``underdetermined``: the best hypothesis's normals leave pose directions free (and no
   covariance from a prior pins them);
-* ``ambiguous``: more than one distinct placement fits within noise (with the factor
-  graph's probabilities: the classes other than the best hold more than
-  AMBIGUOUS_PROBABILITY);
+* ``ambiguous``: another distinct placement holds a real share of the probability (more
+  than AMBIGUOUS_PROBABILITY, 5 %); the hint lists exactly the placements above it;
 * ``ok`` otherwise.
+
+Placements that differ by a symmetry of the object are one pose class (ADD-S), and the
+hint says when the object has such symmetries (model.symmetry).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from contactpose.model.symmetry import symmetries
 from contactpose.types import AMBIGUOUS_PROBABILITY, fit_threshold
 
 
-def status(model, contacts, arrays, classes, tolerance):
-    """Status and hint from the ranked hypotheses and their pose classes."""
+def status(model, contacts, arrays, classes, tolerance, fits=None, truncated=False):
+    """Status and hint from the ranked hypotheses and their pose classes.
+
+    fits : (H,) bool, the hypotheses that fit within noise (default: those in a class);
+    truncated : the search stopped at its time limit.
+    """
     if len(arrays.cost) == 0:
+        if truncated:
+            return "time_limit", "the search stopped at its time limit before any hypothesis was complete"
         return "no_hypothesis", no_hypothesis_hint(model, contacts, tolerance)
+    if truncated:
+        return "time_limit", ("the search stopped at its time limit: the hypotheses found so far are returned, "
+                              "but the true one may be missing; raise time_limit or narrow the tolerances")
+    best_fits = bool(fits[0]) if fits is not None else any(0 in c.members for c in classes)
+    if not best_fits:
+        return "poor_fit", (f"the best hypothesis does not fit within noise (chi2 {arrays.chi2[0]:.3g} > "
+                            f"{fit_threshold(contacts.n):.3g}): more noise than stated, a finger off the object, "
+                            "or a model that differs from the object")
     if arrays.fit.underdetermined[0] and (arrays.covariance is None or not np.isfinite(arrays.covariance[0]).all()):
-        return "underdetermined", "the hypothesised facet normals leave pose directions free; see free_translation / free_rotation"
-    if len(classes) > 1 and (arrays.probability is None or ambiguous(classes)):
-        return "ambiguous", (f"{len(classes)} distinct placements fit within noise (probabilities "
-                             f"{', '.join(f'{c.probability:.2f}' for c in classes[:4])}); add a prior or a touch")
-    if not classes:
-        return "ok", f"the best hypothesis does not fit within noise (chi2 {arrays.chi2[0]:.3g} > {fit_threshold(contacts.n):.3g})"
-    return "ok", ""
+        return "underdetermined", ("the hypothesised facet normals leave pose directions free; see "
+                                   "free_translation / free_rotation")
+    symmetric = symmetry_note(model)
+    if ambiguous(classes):
+        shown = [c for c in classes if c.probability > AMBIGUOUS_PROBABILITY]
+        hint = (f"{len(shown)} distinct placements fit within noise with probabilities "
+                f"{', '.join(f'{c.probability:.2f}' for c in shown)}; add a prior or a touch")
+        return "ambiguous", f"{hint}; {symmetric}" if symmetric else hint
+    return "ok", symmetric
 
 
 def ambiguous(classes, threshold=AMBIGUOUS_PROBABILITY):
-    """Whether the pose classes other than the best hold more than ``threshold`` of the
-    probability together (symmetric twins of the best are in its class)."""
-    return len(classes) > 1 and 1.0 - classes[0].probability > threshold
+    """Whether a pose class other than the best holds more than ``threshold`` of the
+    probability (symmetric twins of the best are in its class)."""
+    return any(c.probability > threshold for c in classes[1:])
+
+
+def symmetry_note(model):
+    """A hint naming the object's symmetries, or "" when it has none."""
+    found = symmetries(model)
+    if not found:
+        return ""
+    return (f"the object is symmetric ({'; '.join(s.describe() for s in found)}): placements that differ by "
+            "it fit the contacts equally and are reported as one placement")
 
 
 def no_hypothesis_hint(model, contacts, tolerance):
+    """Why nothing may have matched: contacts in other units, flipped normals, or tolerances."""
     spread = contacts.spread
     if spread > model.diameter + tolerance.distance:
-        return (f"contacts are {spread:.4g} apart but the object is only {model.diameter:.4g} across: "
-                "wrong units?")
+        return units_message(spread, model.diameter)
+    if normals_flipped(contacts):
+        return ("all normals point away from the contacts' centroid: finger_normal points into the object "
+                "(give object_normal for outward normals)")
     return (f"no facet tuple matches within tolerance (distance ±{tolerance.distance:.3g}, "
             f"angle ±{np.degrees(tolerance.angle):.3g}°): noise too small, wrong units, or a finger off the object?")
+
+
+def units_message(spread, diameter):
+    """One line for contacts spread wider than the object can be."""
+    ratio = spread / diameter
+    guess = " millimetres vs metres?" if 100 <= ratio < 10_000 else " same units?"
+    return f"contacts span {spread:.4g} but the model is {diameter:.4g} across ({ratio:.3g} times):{guess}"
+
+
+def normals_flipped(contacts):
+    """Whether every finger normal points away from the contacts' centroid (n >= 3): a
+    grasp's fingers press toward the object, so at least one must point inward."""
+    if contacts.n < 3:
+        return False
+    to_centre = contacts.points.mean(axis=0) - contacts.points
+    return bool(np.all(np.einsum("ij,ij->i", contacts.finger_normals, to_centre) < 0))

@@ -18,6 +18,8 @@ from itertools import accumulate
 import numba
 import numpy as np
 
+from contactpose.progress import progress_bar
+
 
 def triple_tolerance(angle_bound):
     """Bound on |det[m_a, m_b, m_c] - det[n_a, n_b, n_c]| when each unit vector m is n tilted
@@ -47,15 +49,20 @@ def _det3(a, b, c):
             + a[2] * (b[0] * c[1] - b[1] * c[0]))
 
 
-def join_tuples(S, n, triple=None):
-    """All n-tuples admissible for every finger pair (the tree T), level by level in one
-    compiled pass over all nodes, starting from the most selective finger pair.
+def join_tuples(S, n, triple=None, *, deadline=None, progress=None):
+    """All n-tuples admissible for every finger pair (the tree T), level by level over all
+    nodes, starting from the most selective finger pair.
 
     Each node places the next finger from the placed finger that admits the fewest facets
     for it, then tests the others by binary search in their sorted adjacency rows.
     S : dict (i, j) -> PairSet for i < j; triple : optional TripleTest applied to every
     triple of fingers as soon as it is placed. Returns (H, n) int64 in finger order, each
     node's children in ascending facet order.
+
+    deadline : a progress.Deadline; the start nodes go through every level START_CHUNK at a
+    time, and once it has passed (and some tuple is complete) the rest are left out, so a
+    truncated answer of complete tuples comes back fast and ``deadline.hit`` says so.
+    progress : show a bar (None: on a terminal, after a second).
     """
     pairs = sorted(S)
     pair_of = np.full((n, n), -1, dtype=np.int64)
@@ -68,8 +75,72 @@ def join_tuples(S, n, triple=None):
         normals, measured, tol = np.zeros((1, 3)), np.zeros((n, 3)), np.inf
     else:
         normals, measured, tol = triple.facet_normals, triple.measured, triple.tol
-    return _join(first, second, cut, m, order, pair_of, np.ascontiguousarray(normals, dtype=np.float64),
-                 np.ascontiguousarray(measured, dtype=np.float64), float(tol))
+    normals = np.ascontiguousarray(normals, dtype=np.float64)
+    measured = np.ascontiguousarray(measured, dtype=np.float64)
+    e0 = pair_of[order[0], order[1]]
+    start = np.stack(_directed(first, second, cut, e0, order[0] < order[1]), axis=1).astype(np.int64).reshape(-1, 2)
+    rows = [_level_adjacency(first, second, cut, m, order, pair_of, level) for level in range(2, n)]
+    parts = []
+    with progress_bar(total=len(start), desc="tree", unit="start", show=progress) as bar:
+        for lo in range(0, len(start), START_CHUNK):
+            if any(len(p) for p in parts) and deadline is not None and deadline.passed:
+                break
+            parts.append(_grow_all(start[lo:lo + START_CHUNK], n, rows, order, normals, measured, float(tol)))
+            bar.update(min(START_CHUNK, len(start) - lo))
+    nodes = np.concatenate(parts) if parts else np.zeros((0, n), dtype=np.int64)
+    out = np.empty((len(nodes), n), dtype=np.int64)
+    out[:, order] = nodes
+    return out
+
+
+#: Start nodes (first finger pair) taken through every level at a time: the grain of the
+#: deadline checks. Each start node's tuples are contiguous, so the order is the same.
+START_CHUNK = 1024
+#: Start nodes grown to estimate the size of a tree (expected_tuples).
+ESTIMATE_SAMPLE = 256
+
+
+def _grow_all(start, n, rows, order, normals, measured, tol):
+    """Every complete tuple under the start nodes (K, 2): (H, n) int64 in placement order."""
+    nodes = np.zeros((len(start), n), dtype=np.int64)
+    nodes[:, :2] = start
+    count = len(nodes)
+    for level, (indptr, targets) in enumerate(rows, start=2):
+        if not count:
+            break
+        nodes, count = _grow(nodes, count, level, indptr, targets, order, normals, measured, tol)
+    return nodes[:count]
+
+
+def _level_adjacency(first, second, cut, m, order, pair_of, level):
+    """CSR rows from every placed finger to finger order[level]: indptr (level, m + 1),
+    targets (level, pairs)."""
+    indptr = np.empty((level, m + 1), dtype=np.int64)
+    targets = np.empty((level, max(int(cut[-1]), 1)), dtype=np.int64)
+    for b in range(level):
+        e = pair_of[order[b], order[level]]
+        src, dst = _directed(first, second, cut, e, order[b] < order[level])
+        _adjacency(src, dst, m, indptr[b], targets[b])
+    return indptr, targets
+
+
+def expected_tuples(S, n, triple=None, sample=ESTIMATE_SAMPLE):
+    """Estimate of the tree's output size before it runs in full: the tree grown from
+    ``sample`` of its start nodes (the first finger pair's facet pairs, drawn evenly with
+    a fixed seed), scaled by their share. Unbiased; exact when there are no more start
+    nodes than ``sample``. The pair sets are far from independent (geometry ties them),
+    so their sizes alone would miss the count by orders of magnitude."""
+    pairs = sorted(S)
+    order, _ = placement_order(S, n)
+    a, b = sorted(order[:2])
+    starts = len(S[(a, b)])
+    if starts <= sample:
+        return float(len(join_tuples(S, n, triple)))
+    keep = np.sort(np.random.default_rng(0).choice(starts, size=sample, replace=False))
+    sub = {pair: S[pair] for pair in pairs}
+    first = S[(a, b)]
+    sub[(a, b)] = type(first)(first.first[keep], first.second[keep], first.m)
+    return len(join_tuples(sub, n, triple)) * starts / sample
 
 
 def _flat_pairs(S, pairs):
@@ -96,30 +167,6 @@ def placement_order(S, n):
         order.append(best[1])
         parent.append(best[2])
     return np.array(order, dtype=np.int64), np.array(parent, dtype=np.int64)
-
-
-@numba.njit(cache=True)
-def _join(first, second, cut, m, order, pair_of, normals, measured, tol):
-    """The tree T. first, second, cut : every finger pair's admissible facet pairs,
-    concatenated in pair order (see join_tuples)."""
-    n = len(order)
-    e0 = pair_of[order[0], order[1]]
-    start_a, start_b = _directed(first, second, cut, e0, order[0] < order[1])
-    nodes = np.empty((len(start_a), n), dtype=np.int64)
-    nodes[:, 0], nodes[:, 1] = start_a, start_b
-    count = len(nodes)
-    for level in range(2, n):
-        indptr = np.empty((level, m + 1), dtype=np.int64)
-        targets = np.empty((level, cut[-1]), dtype=np.int64)
-        for b in range(level):
-            e = pair_of[order[b], order[level]]
-            src, dst = _directed(first, second, cut, e, order[b] < order[level])
-            _adjacency(src, dst, m, indptr[b], targets[b])
-        nodes, count = _grow(nodes, count, level, indptr, targets, order, normals, measured, tol)
-    out = np.empty((count, n), dtype=np.int64)
-    for c in range(n):
-        out[:, order[c]] = nodes[:count, c]
-    return out
 
 
 @numba.njit(cache=True)
@@ -225,27 +272,42 @@ def _doubled(a):
     return out
 
 
-def join_tuples_paper(S, n):
+def join_tuples_paper(S, n, *, deadline=None, progress=None):
     """The paper's tree T (§3.2, fig. 7): insert S_12, then grow each node in finger order.
 
     A node on level f (fingers 0..f-1 placed) gets a child γ_f for every facet that
     S_0f, ..., S_(f-1)f all admit with the node's ancestors. Returns (H, n) int64.
+    deadline, progress : as in :func:`join_tuples`, PAPER_START_CHUNK start paths at a time.
     """
     first = S[(0, 1)]
-    paths = [[int(k), int(l)] for k, l in zip(first.first, first.second)]
-    for f in range(2, n):
-        grown = []
-        for path in paths:
-            children = None
-            for a, facet in enumerate(path):
-                indptr, targets = S[(a, f)].neighbours()
-                allowed = targets[indptr[facet]:indptr[facet + 1]]
-                children = allowed if children is None else np.intersect1d(children, allowed, assume_unique=True)
-                if len(children) == 0:
-                    break
-            grown.extend(path + [int(c)] for c in children)
-        paths = grown
-    return np.array(paths, dtype=np.int64).reshape(-1, n)
+    starts = [[int(k), int(l)] for k, l in zip(first.first, first.second)]
+    done = []
+    with progress_bar(total=len(starts), desc="paper tree", unit="start", show=progress) as bar:
+        for lo in range(0, len(starts), PAPER_START_CHUNK):
+            if done and deadline is not None and deadline.passed:
+                break
+            paths = starts[lo:lo + PAPER_START_CHUNK]
+            for f in range(2, n):
+                paths = [path + [int(c)] for path in paths for c in _paper_children(S, path, f)]
+            done.extend(paths)
+            bar.update(len(starts[lo:lo + PAPER_START_CHUNK]))
+    return np.array(done, dtype=np.int64).reshape(-1, n)
+
+
+#: Start paths of the paper's tree taken through every level at a time.
+PAPER_START_CHUNK = 64
+
+
+def _paper_children(S, path, f):
+    """Facets for finger f that every placed finger of ``path`` admits."""
+    children = None
+    for a, facet in enumerate(path):
+        indptr, targets = S[(a, f)].neighbours()
+        allowed = targets[indptr[facet]:indptr[facet + 1]]
+        children = allowed if children is None else np.intersect1d(children, allowed, assume_unique=True)
+        if len(children) == 0:
+            break
+    return children
 
 
 def sorted_rows(tuples):

@@ -12,6 +12,8 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
+from contactpose.progress import progress_bar
+
 
 def eq7_residuals(x, obj_normals, obj_offsets, points, finger_normals):
     """Residual vector of eq. (7) for x = (rotation vector, t). -> (4n,)"""
@@ -36,12 +38,19 @@ def fit_lm(obj_normals, obj_offsets, points, finger_normals, start):
     return T, float(np.sum(sol.fun**2)), bool(sol.success)
 
 
-def fit_lm_all(obj_normals, obj_offsets, points, finger_normals, start):
+def fit_lm_all(obj_normals, obj_offsets, points, finger_normals, start, *, deadline=None, progress=None):
     """fit_lm for H hypotheses. obj_normals : (H, n, 3), obj_offsets : (H, n), start : (4, 4).
 
-    Returns T (H, 4, 4), cost (H,), converged (H,) bool.
+    Returns T (H', 4, 4), cost (H',), converged (H',) bool: H' = H, or fewer when the
+    deadline (progress.Deadline) passed first. progress : a bar (None: on a terminal).
     """
-    out = [fit_lm(nk, dk, points, finger_normals, start) for nk, dk in zip(obj_normals, obj_offsets)]
+    out = []
+    with progress_bar(total=len(obj_normals), desc="LM on eq. (7)", unit="hypothesis", show=progress) as bar:
+        for nk, dk in zip(obj_normals, obj_offsets):
+            if out and deadline is not None and deadline.passed:
+                break
+            out.append(fit_lm(nk, dk, points, finger_normals, start))
+            bar.update()
     if not out:
         return np.empty((0, 4, 4)), np.empty(0), np.empty(0, bool)
     T, cost, ok = zip(*out)
