@@ -182,6 +182,20 @@ class Hypothesis:
             "samples": None if self.samples is None else self.samples.summary(),
         }
 
+    def __repr__(self):
+        parts = [f"facets {self.facets.tolist()}", f"chi2 {self.chi2:.3g}", f"cost {self.cost:.3g}"]
+        if len(self.outliers):
+            parts.append(f"outliers {self.outliers.tolist()}")
+        if self.underdetermined:
+            k = len(self.free_translation)
+            free = [f"{k} translation{'' if k == 1 else 's'}"] * bool(k) + ["1 rotation"] * (self.free_rotation is not None)
+            parts.append(f"underdetermined (free: {', '.join(free)})")
+        if self.probability is not None:
+            parts.append(f"probability {self.probability:.3g}")
+        if self.samples is not None:
+            parts.append(f"{len(self.samples.xi)} samples")
+        return f"Hypothesis({', '.join(parts)})"
+
 
 @dataclass
 class HypothesisArrays:
@@ -300,6 +314,21 @@ class Result:
         if self.extra:
             out["extra"] = dict(self.extra)
         return out
+
+    def __repr__(self):
+        n, shown = int(self.num_hypotheses), len(self.hypotheses)
+        found = (f"{shown} of " if shown != n else "") + f"{n} hypothes{'i' if n == 1 else 'e'}s"
+        if self.best is not None:
+            found += f" (best facets {self.best.facets.tolist()}, chi2 {self.best.chi2:.3g})"
+        c = len(self.classes)
+        total = self.timing.get("total")
+        parts = [f"status={self.status!r}", found, f"{c} pose class{'' if c == 1 else 'es'}",
+                 f"method={self.method!r}"]
+        if self.solver != ("closed-form" if self.method == "fast" else "lm"):
+            parts.append(f"solver={self.solver!r}")
+        if total is not None:
+            parts.append(f"{1000.0 * total:.2f} ms")
+        return f"Result({', '.join(parts)})"
 
 
 @lru_cache(maxsize=64)
