@@ -111,11 +111,12 @@ class PosePrior:
         return np.diag(np.square(sig))
 
     def to_dict(self):
+        """PRIOR.json content (contactpose.io.jsonfiles.parse_prior reads it back)."""
         out = {"pose": self.pose.tolist()}
         if self.covariance is not None:
             out["covariance"] = self.covariance.tolist()
         else:
-            out.update(sigma_rot_deg=self.sigma_rot_deg, sigma_trans=self.sigma_trans)
+            out.update(sigma_rot_deg=float(self.sigma_rot_deg), sigma_trans=float(self.sigma_trans))
         return out
 
 
@@ -163,25 +164,37 @@ class Hypothesis:
     sample_covariance: np.ndarray | None = None
 
     def to_dict(self):
-        out = {
-            "outliers": self.outliers.tolist(),
+        """This hypothesis as JSON (``$defs/hypothesis`` of contactpose/data/result.schema.json):
+        lengths in mesh units, residual columns RESIDUAL_COLUMNS, covariance (6, 6) in
+        TANGENT_ORDER with rotation in radians; null for what was not computed, NaN as null."""
+        return {
             "facets": self.facets.tolist(),
+            "outliers": self.outliers.tolist(),
             "pose": self.pose.tolist(),
-            "cost": float(self.cost),
-            "chi2": float(self.chi2),
-            "residuals": self.residuals.tolist(),
+            "cost": json_number(self.cost),
+            "chi2": json_number(self.chi2),
+            "residuals": json_array(self.residuals),
             "underdetermined": bool(self.underdetermined),
-            "free_translation": self.free_translation.tolist(),
-            "free_rotation": None if self.free_rotation is None else self.free_rotation.tolist(),
+            "free_translation": np.asarray(self.free_translation).reshape(-1, 3).tolist(),
+            "free_rotation": [] if self.free_rotation is None else [np.asarray(self.free_rotation).tolist()],
+            "covariance": None if self.covariance is None else json_array(self.covariance),
+            "probability": None if self.probability is None else json_number(self.probability),
+            "samples": None if self.samples is None else self.samples.summary(),
         }
-        if self.covariance is not None:
-            out["covariance"] = self.covariance.tolist()
+
+    def __repr__(self):
+        parts = [f"facets {self.facets.tolist()}", f"chi2 {self.chi2:.3g}", f"cost {self.cost:.3g}"]
+        if len(self.outliers):
+            parts.append(f"outliers {self.outliers.tolist()}")
+        if self.underdetermined:
+            k = len(self.free_translation)
+            free = [f"{k} translation{'' if k == 1 else 's'}"] * bool(k) + ["1 rotation"] * (self.free_rotation is not None)
+            parts.append(f"underdetermined (free: {', '.join(free)})")
         if self.probability is not None:
-            out["probability"] = float(self.probability)
+            parts.append(f"probability {self.probability:.3g}")
         if self.samples is not None:
-            out["sample_covariance"] = self.sample_covariance.tolist()
-            out["samples"] = self.samples.summary()
-        return out
+            parts.append(f"{len(self.samples.xi)} samples")
+        return f"Hypothesis({', '.join(parts)})"
 
 
 @dataclass
@@ -278,19 +291,44 @@ class Result:
         return self.hypotheses[0] if len(self.hypotheses) else None
 
     def to_dict(self):
-        """A JSON-ready dict."""
-        return {
+        """The localize JSON (contactpose/data/result.schema.json, SCHEMA_VERSION): ``units``,
+        ``timing_ms`` (ms; ``timing`` stays in seconds), ``num_hypotheses`` (all found) and
+        ``num_returned`` (listed, after ``top``), ``best`` (hypotheses[0] or null)."""
+        hypotheses = [h.to_dict() for h in self.hypotheses]
+        out = {
+            "schema_version": SCHEMA_VERSION,
+            "units": result_units(),
             "status": self.status,
             "hint": self.hint,
             "method": self.method,
             "solver": self.solver,
-            "num_hypotheses": self.num_hypotheses,
-            "tolerance": {"distance": self.tolerance.distance, "angle_deg": float(np.degrees(self.tolerance.angle))},
-            "timing": self.timing,
+            "num_hypotheses": int(self.num_hypotheses),
+            "num_returned": len(hypotheses),
+            "tolerance": tolerance_dict(self.tolerance),
+            "timing_ms": {k: 1000.0 * float(v) for k, v in self.timing.items()},
+            "residual_columns": list(RESIDUAL_COLUMNS),
+            "best": None if self.best is None else self.best.to_dict(),
             "classes": [c.to_dict() for c in self.classes],
-            "hypotheses": [h.to_dict() for h in self.hypotheses],
-            **self.extra,
+            "hypotheses": hypotheses,
         }
+        if self.extra:
+            out["extra"] = dict(self.extra)
+        return out
+
+    def __repr__(self):
+        n, shown = int(self.num_hypotheses), len(self.hypotheses)
+        found = (f"{shown} of " if shown != n else "") + f"{n} hypothes{'i' if n == 1 else 'e'}s"
+        if self.best is not None:
+            found += f" (best facets {self.best.facets.tolist()}, chi2 {self.best.chi2:.3g})"
+        c = len(self.classes)
+        total = self.timing.get("total")
+        parts = [f"status={self.status!r}", found, f"{c} pose class{'' if c == 1 else 'es'}",
+                 f"method={self.method!r}"]
+        if self.solver != ("closed-form" if self.method == "fast" else "lm"):
+            parts.append(f"solver={self.solver!r}")
+        if total is not None:
+            parts.append(f"{1000.0 * total:.2f} ms")
+        return f"Result({', '.join(parts)})"
 
 
 @lru_cache(maxsize=64)
@@ -318,11 +356,56 @@ class PoseClass:
     probability: float
 
     def to_dict(self):
-        return {"members": self.members.tolist(), "best": int(self.best), "pose": self.pose.tolist(),
-                "chi2": float(self.chi2), "probability": float(self.probability)}
+        """This class as JSON (``$defs/pose_class`` of contactpose/data/result.schema.json)."""
+        return {"members": np.asarray(self.members).tolist(), "best": int(self.best), "pose": self.pose.tolist(),
+                "chi2": json_number(self.chi2), "probability": json_number(self.probability)}
 
 
 def outlier_penalty(facets):
     """χ² charged for the unassigned fingers (facet -1) of each row: OUTLIER_PENALTY each, so
     that leaving a finger out never beats assigning it within noise. (H, n) -> (H,)"""
     return OUTLIER_PENALTY * np.sum(np.asarray(facets) < 0, axis=-1)
+
+
+# ------------------------------------------------------------- JSON output ---
+
+#: Version of every JSON the CLI writes (contactpose/data/*.schema.json). Bump the minor
+#: number for added keys, the major one for renamed or removed keys.
+SCHEMA_VERSION = "1.0"
+#: The columns of a hypothesis's (n, 5) residuals: the normal residual R n_k + ñ_i (world,
+#: unitless), the offset (point-to-plane; eq. (7) for "paper") and the lateral distance
+#: outside the facet triangle (length units).
+RESIDUAL_COLUMNS = ("normal_x", "normal_y", "normal_z", "offset", "lateral")
+#: Order of every 6-vector and 6×6 covariance in the JSON: GTSAM's Pose3 tangent, rotation first.
+TANGENT_ORDER = ("rot_x", "rot_y", "rot_z", "trans_x", "trans_y", "trans_z")
+#: Angle unit of each angle-valued field of the localize JSON (paths inside a hypothesis
+#: for the last four); the translation parts of covariances and samples are in length units.
+ANGLE_UNITS = {"tolerance.angle_deg": "deg", "tolerance.normal_noise_deg": "deg", "covariance": "rad",
+               "samples.mean": "rad", "samples.covariance": "rad", "samples.intervals": "deg"}
+
+
+def result_units():
+    """The ``units`` block of the localize JSON: lengths in the mesh's own unit (the library
+    does not know its name; metres by default), times in ms, angles per ANGLE_UNITS."""
+    return {"length": "mesh", "time": "ms", "tangent_order": list(TANGENT_ORDER), "angles": dict(ANGLE_UNITS)}
+
+
+def tolerance_dict(tolerance):
+    """Pair tolerances and the noise behind them: lengths in mesh units, angles in degrees."""
+    return {"distance": float(tolerance.distance), "angle_deg": float(np.degrees(tolerance.angle)),
+            "position_noise": float(tolerance.position_noise),
+            "normal_noise_deg": float(np.degrees(tolerance.normal_noise))}
+
+
+def json_number(x):
+    """float(x), or None where x is NaN or infinite (JSON has no such numbers)."""
+    x = float(x)
+    return x if np.isfinite(x) else None
+
+
+def json_array(a):
+    """Nested lists of floats with None for NaN and infinite entries. a : array of any shape"""
+    a = np.asarray(a, dtype=np.float64)
+    if np.isfinite(a).all():
+        return a.tolist()
+    return np.where(np.isfinite(a), a, None).tolist()

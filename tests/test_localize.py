@@ -457,7 +457,8 @@ def test_result_to_dict_round_trips_through_json(models, box_model):
             assert hd["facets"] == h.facets.tolist()
             assert np.array_equal(np.array(hd["pose"]), h.pose)
             assert hd["cost"] == h.cost
-        assert set(back["timing"]) >= {"pairs", "tree", "pose", "rank", "total"}
+        assert set(back["timing_ms"]) >= {"pairs", "tree", "pose", "rank", "total"}
+        assert back["num_returned"] == len(r.hypotheses) and back["best"] == (back["hypotheses"] or [None])[0]
 
 
 def test_top_truncates_the_ranked_list(rock_model):

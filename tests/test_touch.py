@@ -193,7 +193,8 @@ def test_next_touch_cli(box_model, tmp_path, capsys):
     text = capsys.readouterr().out
     assert "next touch: point" in text and "expected gain" in text
     data = json.loads(out.read_text())
-    assert set(data) == {"status", "classes", "touch"} and len(data["touch"]["direction"]) == 3
+    assert set(data) == {"schema_version", "units", "status", "hint", "classes", "touch"}
+    assert len(data["touch"]["direction"]) == 3
     bad = parser.parse_args(["next-touch", "box", "--contacts", str(path), "--candidates", "0"])
     with pytest.raises(ContactPoseError, match="--candidates"):
         bad.func(bad)

@@ -6,7 +6,7 @@ import numpy as np
 
 from contactpose.cli.common import model_or_mesh
 from contactpose.errors import ContactPoseError
-from contactpose.io import jsonfiles
+from contactpose.io import jsonfiles, output
 from contactpose.localize import localize
 from contactpose.touch import suggest_touch
 
@@ -48,6 +48,5 @@ def run(args):
         where = f" at {fmt(o['point'])}" if o["point"] is not None else ""
         print(f"  class {c}: {o['kind']}{where} (group {o['group']})")
     if args.output:
-        jsonfiles.write_json(args.output, {"status": result.status, "classes": [c.to_dict() for c in result.classes],
-                                    "touch": touch.to_dict()})
+        jsonfiles.write_json(args.output, output.next_touch_dict(result, touch))
     return 0

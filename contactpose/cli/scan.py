@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import dataclasses
-import json
 import warnings
 
+from contactpose.io.jsonfiles import write_json
+from contactpose.io.output import scan_report_dict
 from contactpose.scan.reconstruct import (
     METHODS,
     NORMAL_MODES,
@@ -101,8 +102,7 @@ def run(args) -> int:
     result = scan_to_mesh(args.cloud, options_from_args(args))
     write_mesh(result.mesh, args.output)
     if getattr(args, "report_json", None):
-        with open(args.report_json, "w") as fh:
-            json.dump(result.report.to_dict(), fh, indent=2)
+        write_json(args.report_json, scan_report_dict(result.report))
     print(result.report.format())
     print(f"wrote {args.output}")
     return 0

@@ -44,6 +44,7 @@ from numba import njit
 from contactpose.errors import ContactPoseError, check_count
 from contactpose.scoring.rank import closed_form_arrays
 from contactpose.solvers import factor_graph as fg
+from contactpose.types import json_array, json_number
 
 log = logging.getLogger(__name__)
 
@@ -474,12 +475,18 @@ class PoseSamples(EnsembleRun):
         return 1.0 - np.searchsorted(lp, np.atleast_1d(log_prob), side="left") / len(lp)
 
     def summary(self):
-        """A JSON-ready summary (no samples)."""
+        """A JSON-ready summary (no samples; ``$defs/samples`` of contactpose/data/result.schema.json).
+
+        mean (6,) and covariance (6, 6) of ξ in radians and length units; intervals
+        {"0.68", "0.95": (6, 2)} with rotation rows in degrees; tau in chain steps; time_ms in
+        milliseconds; NaN as null.
+        """
         return {
-            "n_samples": int(len(self.xi)), "covariance": self.covariance.tolist(), "mean": self.mean.tolist(),
-            "intervals": {f"{k:g}": v.tolist() for k, v in self.intervals.items()},
-            "tau": self.tau.tolist(), "acceptance": self.acceptance, "steps": self.steps, "burn": self.burn,
-            "thin": self.thin, "n_walkers": self.n_walkers, "converged": self.converged, "seconds": self.seconds,
+            "n_samples": int(len(self.xi)), "mean": json_array(self.mean), "covariance": json_array(self.covariance),
+            "intervals": {f"{k:g}": json_array(v) for k, v in self.intervals.items()},
+            "tau": json_array(self.tau), "acceptance": json_number(self.acceptance), "steps": int(self.steps),
+            "burn": int(self.burn), "thin": int(self.thin), "n_walkers": int(self.n_walkers),
+            "converged": bool(self.converged), "time_ms": 1000.0 * float(self.seconds),
         }
 
 

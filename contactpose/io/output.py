@@ -1,0 +1,70 @@
+"""The JSON the CLI writes, and the JSON Schemas (draft 2020-12) that describe it.
+
+Every output carries ``schema_version`` (SCHEMA_VERSION) and a ``units`` block. The
+schemas ship as package data, one per kind of output (``contactpose/data/<kind>.schema.json``):
+
+* "result": ``localize -o``, built by :meth:`contactpose.types.Result.to_dict`;
+* "touch": ``next-touch -o``, built by :func:`next_touch_dict`;
+* "scan_report": ``scan --report-json``, built by :func:`scan_report_dict`;
+* "bench": ``bench --json``, whose header is :func:`bench_header`.
+
+Rules shared by all: lengths in the mesh's (or cloud's) own unit, times in ms, angles in
+degrees unless ``units`` says radians; null means "not computed / not applicable", [] an
+empty list.
+"""
+
+from __future__ import annotations
+
+import json
+from importlib import resources
+
+from contactpose.types import SCHEMA_VERSION
+
+SCHEMA_KINDS = ("result", "touch", "scan_report", "bench")
+#: Units of the next-touch JSON: lengths in mesh units, information in bits.
+TOUCH_UNITS = {"length": "mesh", "information": "bits"}
+#: Units of the scan report: lengths in the cloud's unit, times in ms, ``*_pct`` in % of the diameter.
+SCAN_UNITS = {"length": "cloud", "time": "ms", "relative": "percent of diameter"}
+#: Units of the bench report: lengths in mesh units, times in ms, memory in MiB, angles in degrees.
+BENCH_UNITS = {"length": "mesh", "time": "ms", "memory": "MiB", "angle": "deg"}
+
+
+def schema_path(kind):
+    """The packaged schema file of one kind of output (SCHEMA_KINDS)."""
+    if kind not in SCHEMA_KINDS:
+        raise ValueError(f"schema kind must be one of {SCHEMA_KINDS}, got {kind!r}")
+    return resources.files("contactpose") / "data" / f"{kind}.schema.json"
+
+
+def load_schema(kind):
+    """The JSON Schema (a dict) of one kind of output (SCHEMA_KINDS)."""
+    return json.loads(schema_path(kind).read_text(encoding="utf-8"))
+
+
+def next_touch_dict(result, touch):
+    """The next-touch JSON: the localize status and pose classes, and the suggested touch.
+
+    result : Result; touch : contactpose.touch.Touch.
+    """
+    return {
+        "schema_version": SCHEMA_VERSION,
+        "units": dict(TOUCH_UNITS),
+        "status": result.status,
+        "hint": result.hint,
+        "classes": [c.to_dict() for c in result.classes],
+        "touch": touch.to_dict(),
+    }
+
+
+def scan_report_dict(report):
+    """The scan report JSON: ScanReport.to_dict with timings in ms (``timings_ms``, ``total_ms``)."""
+    body = report.to_dict()
+    timings = body.pop("timings")
+    seconds = body.pop("seconds")
+    return {"schema_version": SCHEMA_VERSION, "units": dict(SCAN_UNITS), **body,
+            "timings_ms": {k: 1000.0 * float(v) for k, v in timings.items()}, "total_ms": 1000.0 * float(seconds)}
+
+
+def bench_header():
+    """``schema_version`` and ``units`` for the top of the bench JSON."""
+    return {"schema_version": SCHEMA_VERSION, "units": dict(BENCH_UNITS)}
