@@ -72,7 +72,7 @@ def contact_files(tmp_path_factory, banana_model):
     return {
         "example": CONTACTS,
         "five": write_contacts(tmp / "five.json", Contacts(points, finger_normals=g.contacts.finger_normals)),
-        "millimetres": write_contacts(tmp / "mm.json", Contacts(example.points * 1000.0,
+        "millimetres": write_contacts(tmp / "mm.json", Contacts(example.points * 5.0,
                                                                 finger_normals=example.finger_normals)),
         "two": write_contacts(tmp / "two.json", example.permuted(np.arange(2))),
     }
