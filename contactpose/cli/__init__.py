@@ -12,7 +12,7 @@ import logging
 import sys
 import warnings
 
-from contactpose.cli import build_model, localize, next_touch, tools
+from contactpose.cli import build_model, localize, next_touch, objects, tools
 from contactpose.errors import ContactPoseError
 
 log = logging.getLogger("contactpose")
@@ -26,6 +26,7 @@ def build_parser():
     localize.register(sub)
     tools.register(sub)
     next_touch.register(sub)
+    objects.register(sub)
     try:
         from contactpose.cli import scan
     except ImportError as exc:  # Open3D missing: the rest of the CLI still works

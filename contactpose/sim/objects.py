@@ -35,6 +35,7 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from contactpose.errors import ContactPoseError
+from contactpose.sim import ycb
 
 DATA_DIR = Path(__file__).resolve().parent.parent / "data"
 BANANA53_PATH = DATA_DIR / "banana53.ply"
@@ -383,19 +384,29 @@ _OBJECTS = {
 }
 
 
-def names() -> list[str]:
-    """Names accepted by :func:`load`."""
-    return list(_OBJECTS)
+def names(ycb_objects=True) -> list[str]:
+    """Names accepted by :func:`load`: the procedural objects, then the YCB meshes
+    (``ycb:011_banana``; sim.ycb) unless ``ycb_objects=False``."""
+    return list(_OBJECTS) + (ycb.names() if ycb_objects else [])
+
+
+def is_builtin(name) -> bool:
+    """Whether ``name`` names a built-in object (a procedural one, or any ``ycb:`` name)."""
+    return isinstance(name, str) and (name in _OBJECTS or ycb.is_ycb_name(name))
 
 
 def load(name: str) -> trimesh.Trimesh:
-    """Build (or read) the built-in object ``name`` as a fresh mesh.
+    """Build (or read) the built-in object ``name`` as a fresh mesh: a procedural object,
+    or a YCB mesh by ``ycb:`` name (short aliases such as ``ycb:banana`` work too).
 
     Raises ContactPoseError naming ``name`` and the valid names if unknown.
     """
+    if isinstance(name, str) and ycb.is_ycb_name(name):
+        return ycb.load(name)
     if not isinstance(name, str) or name not in _OBJECTS:
         raise ContactPoseError(
-            f"unknown object {name!r}; expected one of: {', '.join(_OBJECTS)}")
+            f"unknown object {name!r}; expected one of: {', '.join(_OBJECTS)}, or a YCB object "
+            f"such as ycb:011_banana (contactpose objects lists them)")
     return _OBJECTS[name]()
 
 

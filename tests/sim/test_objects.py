@@ -33,7 +33,7 @@ EXTENTS = {
 
 @pytest.fixture(scope="module")
 def meshes():
-    return {name: objects.load(name) for name in objects.names()}
+    return {name: objects.load(name) for name in objects.names(ycb_objects=False)}
 
 
 def _merged(mesh):
@@ -66,7 +66,7 @@ GENERATED = {"espresso6767", "espresso83846"}
 
 
 def test_names_are_all_listed():
-    assert set(objects.names()) == set(FACET_COUNTS) | GENERATED
+    assert set(objects.names(ycb_objects=False)) == set(FACET_COUNTS) | GENERATED
 
 
 @pytest.mark.slow
@@ -167,7 +167,7 @@ def test_unknown_name_raises(bad):
         objects.load(bad)
     message = str(info.value)
     assert repr(bad) in message
-    assert all(name in message for name in objects.names())
+    assert all(name in message for name in objects.names(ycb_objects=False))
 
 
 def test_non_string_name_raises():
