@@ -41,7 +41,7 @@ test-all: setup lint
 	$(PY) -m pytest -q -p no:cacheprovider --durations=15
 
 bench: setup
-	$(PY) -m contactpose bench
+	$(PY) -m contactpose bench --out results/bench
 
 results: setup
 	$(PY) experiments/run_all.py

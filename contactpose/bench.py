@@ -10,6 +10,7 @@ among the hypotheses (as patches on models searched by patches).
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 import subprocess
@@ -21,12 +22,17 @@ import numpy as np
 
 from contactpose.contacts import Tolerance
 from contactpose.errors import ContactPoseError
+from contactpose.io.output import bench_header
 from contactpose.localize import localize
 from contactpose.model.object_model import ObjectModel
 from contactpose.sim import grasps as simulate
 from contactpose.sim import objects
 from contactpose.sweep import machine_description
 
+#: The models timed when none are named (``contactpose bench --help`` and the README show them).
+DEFAULT_MODELS = ("banana", "rock1k", "espresso6767", "espresso83846")
+#: What ``--out DIR`` holds: the report, the table, the figure of the stage times.
+OUTPUT_FILES = ("bench.json", "bench.csv", "bench_stages.png")
 STAGES = ("pairs", "tree", "pose", "rank", "total")
 #: Sensor noise of the benchmark grasps: 0.5 mm and 1°, bounded within tolerance.
 POSITION_NOISE = 0.0005
@@ -136,7 +142,7 @@ def bench_model(name, runs, seed, cap, workdir):
            "patches": None if model.patches is None else model.patches.count,
            "facet_table": model.table is not None, "build_options": BUILD_OPTIONS.get(name, {}),
            "build_median_ms": build["median"] * 1000, "build_repeats": build["repeats"],
-           "build_stage_seconds": build["seconds"], "build_peak_rss_mib": build["peak_mib"],
+           "build_stage_ms": {k: 1000.0 * v for k, v in build["seconds"].items()}, "build_peak_rss_mib": build["peak_mib"],
            "build_baseline_rss_mib": build["baseline_mib"], "fast": fast}
     if model.table is None:
         out.update(paper=None, paper_skipped="no facet table: the paper's method needs facet_pairs=True "
@@ -149,42 +155,133 @@ def bench_model(name, runs, seed, cap, workdir):
     return out
 
 
+#: The stage columns of the table, CSV and figure, with their headings.
+TABLE_STAGES = (("pairs", "S_ij"), ("tree", "tree"), ("pose", "pose"), ("rank", "rank"))
+
+
+def table_rows(results):
+    """One row per model and method (the table, the CSV): build, median stage times, totals."""
+    rows = []
+    for r in results:
+        for method in ("fast", "paper"):
+            row = {"model": r["model"], "facets": r["facets"], "build_ms": r["build_median_ms"],
+                   "peak_rss_mib": r["build_peak_rss_mib"], "method": method}
+            s = r[method]
+            if s is None:
+                rows.append({**row, "note": f"skipped: {r['paper_skipped']}"})
+                continue
+            row.update({f"{k}_ms": s[k]["median_ms"] for k, _ in TABLE_STAGES})
+            row.update(total_median_ms=s["total"]["median_ms"], total_p95_ms=s["total"]["p95_ms"],
+                       total_max_ms=s["total"]["max_ms"], hypotheses_median=s["hypotheses"]["median"],
+                       recall=s["recall"], runs=s["runs"])
+            stopped = method == "paper" and not r["paper_complete"]
+            rows.append({**row, "note": f"stopped after {s['runs']} runs: over the cap" if stopped else ""})
+    return rows
+
+
+CSV_COLUMNS = ("model", "facets", "build_ms", "peak_rss_mib", "method", *(f"{k}_ms" for k, _ in TABLE_STAGES),
+               "total_median_ms", "total_p95_ms", "total_max_ms", "hypotheses_median", "recall", "runs", "note")
+
+
 def format_table(results):
     lines = [f"{'model':13s} {'m':>6s} {'build ms':>9s} {'peak MiB':>9s} | {'method':6s} {'S_ij':>7s} {'tree':>7s} "
              f"{'pose':>8s} {'rank':>7s} {'total med':>9s} {'p95':>8s} {'max':>8s} {'H med':>6s} {'recall':>6s}"]
-    for r in results:
-        for method in ("fast", "paper"):
-            s = r[method]
-            if s is None:
-                lines.append(f"{r['model']:13s} {'':6s} {'':9s} {'':9s} | {method:6s} skipped: {r['paper_skipped']}")
-                continue
-            lines.append(
-                f"{r['model']:13s} {r['facets']:6d} {r['build_median_ms']:9.2f} {r['build_peak_rss_mib']:9.0f} | {method:6s} "
-                + " ".join(f"{s[k]['median_ms']:7.3f}" for k in ("pairs", "tree"))
-                + f" {s['pose']['median_ms']:8.3f} {s['rank']['median_ms']:7.3f} {s['total']['median_ms']:9.3f} "
-                f"{s['total']['p95_ms']:8.2f} {s['total']['max_ms']:8.2f} {s['hypotheses']['median']:6.0f} {s['recall']:6.2f}"
-                + ("" if method == "fast" or r["paper_complete"] else f"  (stopped after {s['runs']} runs: over the cap)"))
-        if r["paper"] is not None:
-            lines.append(f"{'':13s} paper/fast median ratio: {r['ratio_paper_over_fast']:.1f}x")
+    ratios = {r["model"]: r.get("ratio_paper_over_fast") for r in results}
+    for row in table_rows(results):
+        if "runs" not in row:
+            lines.append(f"{row['model']:13s} {'':6s} {'':9s} {'':9s} | {row['method']:6s} {row['note']}")
+            continue
+        lines.append(
+            f"{row['model']:13s} {row['facets']:6d} {row['build_ms']:9.2f} {row['peak_rss_mib']:9.0f} | "
+            f"{row['method']:6s} {row['pairs_ms']:7.3f} {row['tree_ms']:7.3f} {row['pose_ms']:8.3f} "
+            f"{row['rank_ms']:7.3f} {row['total_median_ms']:9.3f} {row['total_p95_ms']:8.2f} {row['total_max_ms']:8.2f} "
+            f"{row['hypotheses_median']:6.0f} {row['recall']:6.2f}" + (f"  ({row['note']})" if row["note"] else ""))
+        if row["method"] == "paper":
+            lines.append(f"{'':13s} paper/fast median ratio: {ratios[row['model']]:.1f}x")
     return "\n".join(lines)
 
 
-def run_bench(args):
-    names = args.models or ["banana", "rock1k", "espresso6767", "espresso83846"]
+def write_csv(results, path):
+    """The table as CSV, one row per model and method (times in ms)."""
+    with open(path, "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=CSV_COLUMNS)
+        writer.writeheader()
+        writer.writerows({k: round(v, 4) if isinstance(v, float) else v for k, v in row.items()}
+                         for row in table_rows(results))
+    return path
+
+
+def plot_stages(results, path):
+    """PNG of the median time of each stage (log scale), fast beside paper, one panel per model."""
+    from matplotlib.figure import Figure
+    from matplotlib.ticker import FuncFormatter, NullFormatter
+
+    fig = Figure(figsize=(1.0 + 3.0 * len(results), 3.8), dpi=130)
+    axes = fig.subplots(1, len(results), squeeze=False, sharey=True)[0]
+    x = np.arange(len(TABLE_STAGES))
+    for ax, r in zip(axes, results):
+        for offset, method, color in ((-0.2, "fast", "#4c72b0"), (0.2, "paper", "#dd8452")):
+            if r[method] is not None:
+                ms = [r[method][stage]["median_ms"] for stage, _ in TABLE_STAGES]
+                ax.bar(x + offset, ms, width=0.4, color=color, label=method)
+        ax.set_yscale("log")
+        ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+        ax.yaxis.set_minor_formatter(NullFormatter())
+        ax.set_xticks(x, [label for _, label in TABLE_STAGES], fontsize=8)
+        ax.set_title(f"{r['model']} ({r['facets']} facets)" + ("" if r["paper"] else "\npaper: no facet table"),
+                     fontsize=9)
+        ax.tick_params(axis="y", labelsize=8)
+        ax.legend(fontsize=7)
+    axes[0].set_ylabel("median time [ms]", fontsize=8)
+    fig.suptitle(f"online stages, {results[0]['fast']['runs']} grasps per model", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path)
+    return path
+
+
+def check_bench_options(names, runs, paper_cap):
+    """Raise ContactPoseError naming the first bad option."""
     unknown = [n for n in names if n not in objects.names()]
     if unknown:
         raise ContactPoseError(f"unknown model {unknown[0]!r}; choose from {objects.names()}")
+    if not isinstance(runs, int) or runs < 1:
+        raise ContactPoseError(f"--runs must be at least 1, got {runs!r}")
+    if not paper_cap > 0:
+        raise ContactPoseError(f"--paper-cap must be a positive number of seconds, got {paper_cap!r}")
+
+
+def run_bench(names=DEFAULT_MODELS, *, runs=25, seed=0, paper_cap=20.0, out_dir=None, json_path=None):
+    """Time every model, print the table; write files only where ``out_dir`` / ``json_path`` say.
+
+    out_dir : folder for bench.json, bench.csv and bench_stages.png; json_path : the JSON report
+    there instead (alone, without out_dir, it is the only file written). Returns 0.
+    """
+    check_bench_options(names, runs, paper_cap)
     start = time.perf_counter()
     with tempfile.TemporaryDirectory() as workdir:
-        results = [bench_model(n, args.runs, args.seed, args.paper_cap, workdir) for n in names]
-    report = {"machine": machine_description(), "runs": args.runs, "seed": args.seed,
+        results = [bench_model(n, runs, seed, paper_cap, workdir) for n in names]
+    report = {**bench_header(), "machine": machine_description(), "runs": runs, "seed": seed,
               "noise": {"position": POSITION_NOISE, "normal_deg": NORMAL_NOISE_DEG}, "models": results,
-              "seconds": time.perf_counter() - start}
+              "total_ms": 1000.0 * (time.perf_counter() - start)}
     print(f"machine: {report['machine']}")
     print(format_table(results))
-    os.makedirs(args.out, exist_ok=True)
-    path = args.json or os.path.join(args.out, "bench.json")
-    with open(path, "w") as fh:
-        json.dump(report, fh, indent=1)
-    print(f"written: {path}")
+    for path in write_outputs(report, out_dir, json_path):
+        print(f"written: {path}")
     return 0
+
+
+def write_outputs(report, out_dir, json_path):
+    """Write the report where asked; the paths written."""
+    written = []
+    if out_dir is not None:
+        os.makedirs(out_dir, exist_ok=True)
+        json_path = json_path or os.path.join(out_dir, OUTPUT_FILES[0])
+    if json_path is not None:
+        os.makedirs(os.path.dirname(json_path) or ".", exist_ok=True)
+        with open(json_path, "w") as fh:
+            json.dump(report, fh, indent=1)
+        written.append(json_path)
+    if out_dir is not None:
+        written.append(write_csv(report["models"], os.path.join(out_dir, OUTPUT_FILES[1])))
+        written.append(plot_stages(report["models"], os.path.join(out_dir, OUTPUT_FILES[2])))
+    return written

@@ -6,21 +6,33 @@ import logging
 import os
 import time
 
-from contactpose.cli.common import model_or_mesh
+from contactpose.cli.common import add_parser, is_model_file, library_default, model_or_mesh, warn_in_vain
+from contactpose.errors import ContactPoseError
 from contactpose.model import ObjectModel
+from contactpose.model.object_model import BOUNDS
+from contactpose.model.table import DEFAULT_BINS
 
 log = logging.getLogger("contactpose")
 
+#: The pair bounds when --bounds is not given (None in the parser: a model file is then not checked).
+DEFAULT_BOUNDS = library_default(ObjectModel.from_mesh, "bounds")
+
 
 def register(sub):
-    p = sub.add_parser("build-model", help="build a contact model (.npz) from a mesh or a point cloud")
+    p = add_parser(sub, "build-model", help="build a contact model (.npz) from a mesh or a point cloud",
+                   description="Build the contact model (facet planes, pair table) of a mesh, a built-in object "
+                               "or a point cloud, and write it as one .npz file.")
     p.add_argument("mesh", help="mesh file (STL, OBJ, PLY, OFF, GLB), point cloud file (PLY without faces, "
                                 "PCD, XYZ, NPY; meshed first with the scan options) or a built-in object name")
-    p.add_argument("-o", "--output", help="output .npz (default: MESH name with .npz)")
-    p.add_argument("--bins", nargs=3, type=int, metavar="P", help="bins p_dmax p_dmin p_alpha")
-    p.add_argument("--bounds", choices=("exact", "paper"), default="exact")
+    p.add_argument("-o", "--output", metavar="MODEL.npz",
+                   help="output .npz (default: the MESH name with .npz, in the current directory)")
+    p.add_argument("--bins", nargs=3, type=int, metavar="P",
+                   help=f"bins p_dmax p_dmin p_alpha (default: {' '.join(map(str, DEFAULT_BINS))})")
+    p.add_argument("--bounds", choices=BOUNDS,
+                   help=f"pair bounds: exact, or the paper's vertex-only ones (default: {DEFAULT_BOUNDS})")
     p.add_argument("--fix-normals", action="store_true", help="re-wind faces consistently outward (trimesh repair)")
-    p.add_argument("--max-span", type=float, help="hand span L: store only facet pairs closer than L (mesh units)")
+    p.add_argument("--max-span", type=float, metavar="L",
+                   help="hand span L: store only facet pairs closer than L, in mesh units (default: all pairs)")
     p.set_defaults(func=run)
     try:  # Open3D present: a point cloud is meshed first (contactpose scan), with the same options
         from contactpose.cli import scan
@@ -31,8 +43,17 @@ def register(sub):
         log.debug("build-model takes meshes only: %s", exc)
 
 
+def warn_options_in_vain(args, scanned):
+    """One warning for each option given that cannot change the model written."""
+    if getattr(args, "save_mesh", None) and scanned is None:
+        warn_in_vain("--save-mesh", f"without a point cloud ({args.mesh} is not a point cloud file)")
+
+
 def run(args):
     """Build, save and describe the model; 0 on success."""
+    if is_model_file(args.mesh):
+        raise ContactPoseError(f"{args.mesh} is a model file already; build-model takes a mesh, a point cloud "
+                               "or a built-in object name")
     scanned = None
     if getattr(args, "scan_prefix", None) is not None:  # scan options registered: clouds are accepted
         from contactpose.cli import scan
@@ -51,6 +72,7 @@ def run(args):
         kwargs = {k: v for k, v in (("bins", args.bins), ("bounds", args.bounds)) if v is not None}
         model = ObjectModel.from_mesh(scanned.mesh, fix_normals=args.fix_normals, max_span=args.max_span, **kwargs)
     seconds = time.perf_counter() - start
+    warn_options_in_vain(args, scanned)  # after the checks: bad input gets its one error line only
     out = args.output or os.path.splitext(os.path.basename(args.mesh))[0] + ".npz"
     model.save(out)
     d = model.describe()

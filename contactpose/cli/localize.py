@@ -2,47 +2,78 @@
 
 from __future__ import annotations
 
-from contactpose.cli.common import model_or_mesh
+from contactpose.cli.common import (
+    EXIT_NO_HYPOTHESIS,
+    EXIT_OK,
+    add_noise_options,
+    add_parser,
+    is_model_file,
+    library_default,
+    model_or_mesh,
+    warn_in_vain,
+)
 from contactpose.io import jsonfiles
 from contactpose.localize import localize
 from contactpose.types import METHODS, ROBUST, SOLVERS
 
+#: The robust kernel when --robust is not given (None in the parser, to tell a given value).
+DEFAULT_ROBUST = library_default(localize, "robust")
+
 
 def register(sub):
-    p = sub.add_parser("localize", help="find contact facets and the object pose")
+    p = add_parser(sub, "localize", help="find contact facets and the object pose",
+                   description="Find every admissible finger-to-facet assignment and the object pose behind each.")
     p.add_argument("model", help="model .npz, mesh file or built-in object name")
-    p.add_argument("--contacts", required=True, help="CONTACTS.json")
-    p.add_argument("--prior", help="PRIOR.json")
-    p.add_argument("--position-noise", type=float, help="σ of contact points (length units)")
-    p.add_argument("--normal-noise-deg", type=float, default=1.0, help="σ of normals (degrees)")
-    p.add_argument("--method", choices=METHODS, default="fast")
-    p.add_argument("--solver", choices=SOLVERS)
-    p.add_argument("--robust", choices=ROBUST, default="huber",
-                   help="factor graph's robust kernel (with --solver factor-graph)")
-    p.add_argument("--max-outliers", type=int, default=0, help="fingers that may be left unassigned")
-    p.add_argument("--finger-radius", type=float,
-                   help="drop hypotheses that put a contact where no fingertip of this radius fits")
-    p.add_argument("--samples", type=int, default=0, help="posterior samples of the best pose (emcee)")
-    p.add_argument("--seed", type=int, help="seed for --samples (repeatable runs)")
-    p.add_argument("--top", type=int, help="keep the best K hypotheses")
-    p.add_argument("--fix-normals", action="store_true", help="when given a mesh: re-wind faces outward first")
-    p.add_argument("-o", "--output", help="write the result as JSON")
+    p.add_argument("--contacts", required=True, metavar="CONTACTS.json", help="a point and a normal per finger")
+    p.add_argument("--prior", metavar="PRIOR.json", help="pose prior: LM's start, a prior factor with the factor graph")
+    add_noise_options(p)
+    p.add_argument("--method", choices=METHODS, default="fast",
+                   help="fast: exact pair bounds, patches, closed form; paper: the published method")
+    p.add_argument("--solver", choices=SOLVERS,
+                   help="pose solver (default: closed-form with --method fast, lm with paper); factor-graph refines "
+                        "the best hypotheses and gives covariances")
+    p.add_argument("--robust", choices=ROBUST,
+                   help=f"robust kernel of --solver factor-graph and of --samples (default: {DEFAULT_ROBUST})")
+    p.add_argument("--max-outliers", type=int, default=0, metavar="Q", help="fingers that may be left unassigned")
+    p.add_argument("--finger-radius", type=float, metavar="R",
+                   help="drop hypotheses that put a contact where no fingertip of this radius fits (default: off)")
+    p.add_argument("--samples", type=int, default=0, metavar="N", help="posterior samples of the best pose (emcee)")
+    p.add_argument("--seed", type=int, metavar="S", help="seed for --samples (default: a fresh one each run)")
+    p.add_argument("--top", type=int, metavar="K", help="write only the best K hypotheses with -o (default: all)")
+    p.add_argument("--fix-normals", action="store_true", help="with a mesh: re-wind its faces outward first")
+    p.add_argument("--strict", action="store_true",
+                   help=f"exit with code {EXIT_NO_HYPOTHESIS} when no hypothesis fits (status no_hypothesis)")
+    p.add_argument("-o", "--output", metavar="OUT.json", help="write the result as JSON")
     p.set_defaults(func=run)
 
 
+def warn_options_in_vain(args):
+    """One warning for each option given that cannot change the result or the output."""
+    if args.seed is not None and not args.samples:
+        warn_in_vain("--seed", "without --samples")
+    if args.robust is not None and args.solver != "factor-graph" and not args.samples:
+        warn_in_vain("--robust", "without --solver factor-graph or --samples")
+    if args.top is not None and not args.output:
+        warn_in_vain("--top", "without -o (the printed result shows the best hypothesis only)")
+    if args.fix_normals and is_model_file(args.model):
+        warn_in_vain("--fix-normals", f"with a model file ({args.model}): it applies when building from a mesh")
+
+
 def run(args):
-    """Localize, print the result, optionally write it as JSON; 0 on success."""
+    """Localize, print the result, optionally write it as JSON; 0 on success (3 with --strict and no hypothesis)."""
     model = model_or_mesh(args.model, fix_normals=args.fix_normals)
     contacts = jsonfiles.read_contacts(args.contacts)
     prior = jsonfiles.read_prior(args.prior) if args.prior else None
     result = localize(model, contacts, position_noise=args.position_noise,
                       normal_noise_deg=args.normal_noise_deg, prior=prior, method=args.method,
-                      solver=args.solver, top=args.top, robust=args.robust, max_outliers=args.max_outliers,
-                      samples=args.samples, seed=args.seed, finger_radius=args.finger_radius)
+                      solver=args.solver, top=args.top, robust=args.robust or DEFAULT_ROBUST,
+                      max_outliers=args.max_outliers, samples=args.samples, seed=args.seed,
+                      finger_radius=args.finger_radius)
+    warn_options_in_vain(args)  # after the checks: bad input gets its one error line only
     if args.output:
         jsonfiles.write_json(args.output, result.to_dict())
     print_result(result)
-    return 0
+    return EXIT_NO_HYPOTHESIS if args.strict and result.status == "no_hypothesis" else EXIT_OK
 
 
 def print_result(result):

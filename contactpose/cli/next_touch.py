@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from contactpose.cli.common import model_or_mesh
+from contactpose.cli.common import add_noise_options, add_parser, model_or_mesh
 from contactpose.errors import ContactPoseError
 from contactpose.io import jsonfiles, output
 from contactpose.localize import localize
@@ -13,16 +13,15 @@ from contactpose.touch import suggest_touch
 
 def register(subparsers):
     """Add ``next-touch MODEL_OR_MESH --contacts CONTACTS.json [...]``; handler :func:`run`."""
-    p = subparsers.add_parser("next-touch", help="suggest the probe that best separates the remaining poses",
-                              description="Localize, then propose the next touch (a world point and approach "
-                                          "direction) that best separates the pose classes that still fit.")
+    p = add_parser(subparsers, "next-touch", help="suggest the probe that best separates the remaining poses",
+                   description="Localize, then propose the next touch (a world point and approach "
+                               "direction) that best separates the pose classes that still fit.")
     p.add_argument("model", metavar="MODEL_OR_MESH", help="model .npz, mesh file or built-in object name")
-    p.add_argument("--contacts", required=True, help="CONTACTS.json")
-    p.add_argument("--position-noise", type=float, help="σ of contact points (length units)")
-    p.add_argument("--normal-noise-deg", type=float, default=1.0, help="σ of normals (degrees)")
-    p.add_argument("--candidates", type=int, default=200, help="number of candidate probes (default 200)")
-    p.add_argument("--seed", type=int, default=0, help="seed of the candidate sampling")
-    p.add_argument("-o", "--output", help="write the suggestion as JSON")
+    p.add_argument("--contacts", required=True, metavar="CONTACTS.json", help="a point and a normal per finger")
+    add_noise_options(p)
+    p.add_argument("--candidates", type=int, default=200, metavar="N", help="number of candidate probes")
+    p.add_argument("--seed", type=int, default=0, metavar="S", help="seed of the candidate sampling")
+    p.add_argument("-o", "--output", metavar="OUT.json", help="write the suggestion as JSON")
     p.set_defaults(func=run)
 
 

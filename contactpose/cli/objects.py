@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+from contactpose.cli.common import add_parser
 from contactpose.sim import objects, ycb
 
 
 def register(sub):
-    p = sub.add_parser("objects", help="list the built-in objects (procedural meshes and the YCB set)")
+    p = add_parser(sub, "objects", help="list the built-in objects (procedural meshes and the YCB set)",
+                   description="The names build-model, localize and next-touch take as MESH.")
     p.set_defaults(func=run)
 
 

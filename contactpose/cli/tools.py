@@ -2,20 +2,30 @@
 
 from __future__ import annotations
 
+from contactpose import bench
+from contactpose.cli.common import add_parser
+
 
 def register(sub):
-    p = sub.add_parser("demo", help="the paper's banana protocol on the built-in banana")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", default="results/demo")
+    p = add_parser(sub, "demo", help="the paper's banana protocol on the built-in banana",
+                   description="Build the banana model, grasp it with four fingers (the paper's §5 protocol), "
+                               "localize with both methods and draw the estimate.")
+    p.add_argument("--seed", type=int, default=0, metavar="S", help="seed of the grasp")
+    p.add_argument("--out", default="results/demo", metavar="DIR", help="folder of the picture")
     p.set_defaults(func=run_demo)
 
-    p = sub.add_parser("bench", help="online and offline timings, fast vs paper")
-    p.add_argument("--json", help="also write the table as JSON")
-    p.add_argument("--runs", type=int, default=25)
-    p.add_argument("--models", nargs="*", help="built-in object names (default: banana rock1k espresso6767)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--paper-cap", type=float, default=20.0, help="stop the paper's method past this many seconds per grasp")
-    p.add_argument("--out", default="results/bench")
+    p = add_parser(sub, "bench", help="online and offline timings, fast vs paper",
+                   description="Build time and peak memory of each model, then the online stage times over "
+                               "random 4-finger grasps, method fast beside paper on the same grasps. Prints the "
+                               "table; writes files only with --out or --json.")
+    p.add_argument("--models", nargs="+", default=bench.DEFAULT_MODELS, metavar="NAME", help="built-in object names")
+    p.add_argument("--runs", type=int, default=25, metavar="N", help="grasps per model")
+    p.add_argument("--seed", type=int, default=0, metavar="S", help="seed of the grasps")
+    p.add_argument("--paper-cap", type=float, default=20.0, metavar="SECONDS",
+                   help="stop the paper's method once one grasp takes longer")
+    p.add_argument("--out", metavar="DIR",
+                   help=f"write {', '.join(bench.OUTPUT_FILES)} into DIR (default: write nothing)")
+    p.add_argument("--json", metavar="PATH", help="write the JSON report to PATH (instead of DIR/bench.json)")
     p.set_defaults(func=run_bench)
 
 
@@ -26,6 +36,5 @@ def run_demo(args):
 
 
 def run_bench(args):
-    from contactpose.bench import run_bench
-
-    return run_bench(args)
+    return bench.run_bench(args.models, runs=args.runs, seed=args.seed, paper_cap=args.paper_cap,
+                           out_dir=args.out, json_path=args.json)
