@@ -13,7 +13,7 @@ from contactpose.cli.common import (
     warn_in_vain,
 )
 from contactpose.io import jsonfiles
-from contactpose.localize import localize
+from contactpose.localize import DEFAULT_TIME_LIMIT, localize
 from contactpose.types import METHODS, ROBUST, SOLVERS
 
 #: The robust kernel when --robust is not given (None in the parser, to tell a given value).
@@ -41,6 +41,9 @@ def register(sub):
     p.add_argument("--seed", type=int, metavar="S", help="seed for --samples (default: a fresh one each run)")
     p.add_argument("--top", type=int, metavar="K", help="write only the best K hypotheses with -o (default: all)")
     p.add_argument("--fix-normals", action="store_true", help="with a mesh: re-wind its faces outward first")
+    p.add_argument("--time-limit", type=float, default=DEFAULT_TIME_LIMIT, metavar="SEC",
+                   help="seconds the search may take; past them the hypotheses found so far come back with "
+                        "status time_limit (0: no limit)")
     p.add_argument("--strict", action="store_true",
                    help=f"exit with code {EXIT_NO_HYPOTHESIS} when no hypothesis fits (status no_hypothesis)")
     p.add_argument("-o", "--output", metavar="OUT.json", help="write the result as JSON")
@@ -68,7 +71,7 @@ def run(args):
                       normal_noise_deg=args.normal_noise_deg, prior=prior, method=args.method,
                       solver=args.solver, top=args.top, robust=args.robust or DEFAULT_ROBUST,
                       max_outliers=args.max_outliers, samples=args.samples, seed=args.seed,
-                      finger_radius=args.finger_radius)
+                      finger_radius=args.finger_radius, time_limit=args.time_limit or None)
     warn_options_in_vain(args)  # after the checks: bad input gets its one error line only
     if args.output:
         jsonfiles.write_json(args.output, result.to_dict())
