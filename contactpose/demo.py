@@ -11,6 +11,7 @@ from contactpose.localize import localize
 from contactpose.model.object_model import ObjectModel
 from contactpose.sim import grasps as simulate
 from contactpose.sim import objects
+from contactpose.types import fit_threshold
 from contactpose.viz import plot_localization
 
 #: Tolerance settings of the demo (the paper gives none): 0.5 mm and 1° sensor noise.
@@ -48,7 +49,9 @@ def run_demo(seed=0, out_dir="results/demo"):
     path = os.path.join(out_dir, "banana_demo.png")
     best = results["fast"].best
     if best is not None:
-        plot_localization(model, g.contacts, best.pose, path, true_pose=g.pose,
-                          title=f"banana, 4 contacts: estimated pose (yellow) vs truth (grey), facets {best.facets.tolist()}")
+        costs = {m: r.hypotheses.arrays.chi2 for m, r in results.items()}
+        plot_localization(model, g.contacts, best.pose, path, true_pose=g.pose, costs=costs,
+                          threshold=fit_threshold(g.contacts.n),
+                          title=f"banana, 4 contacts: best facets {best.facets.tolist()}")
         print(f"picture: {path}")
     return 0
