@@ -147,6 +147,11 @@ class Tolerance:
         sigma_n = np.radians(normal_noise_deg)
         return cls(k * position_noise + model_error, min(k * sigma_n, np.pi), float(position_noise), float(sigma_n))
 
+    def widened(self, factor):
+        """The same noise with the pair tolerances (distance, angle) ``factor`` times wider."""
+        return Tolerance(factor * self.distance, min(factor * self.angle, np.pi), self.position_noise,
+                         self.normal_noise)
+
     def direction(self, distance):
         """σ_h for finger pairs Δ̃ apart (scalar or array): σ_Δ + (Δ̃ + σ_Δ)·σ_α.
 

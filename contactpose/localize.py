@@ -51,6 +51,8 @@ from contactpose.types import (
 
 #: Seconds a search may take by default before it returns what it found (status "time_limit").
 DEFAULT_TIME_LIMIT = 60.0
+#: When nothing matches, the pair tolerances are widened by these factors in turn.
+WIDEN_SCHEDULE = (1.5, 2.0)
 #: Share of the time left that the tree may take; the poses and ranking get the rest.
 TREE_SHARE = 0.25
 #: Hypotheses posed and ranked at a time (the grain of their deadline checks).
@@ -112,6 +114,9 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
                                  prior=prior, deadline=deadline, progress=progress)
         arrays = arrays.merged(sub.widened(keep, contacts.n, len(dropped) * OUTLIER_PENALTY))
         timing = {k: timing[k] + sub_timing[k] for k in timing}
+    widened = ""
+    if len(arrays.cost) == 0 and method == "fast":
+        arrays, widened = _widen(model, contacts, arrays, tolerance, pose_solver, prior, deadline, progress, timing)
     if finger_radius is not None:
         free_start = time.perf_counter()
         arrays = drop_blocked(model, contacts, arrays, finger_radius)
@@ -123,8 +128,9 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
         timing["refine"] = time.perf_counter() - refine_start
     classes_start = time.perf_counter()
     classes, status, hint = classify(model, contacts, arrays, tolerance, method=method, deadline=deadline)
-    if rescue:
-        hint = f"{hint}; {rescue}" if hint else rescue
+    for note in (widened, rescue):
+        if note:
+            hint = f"{hint}; {note}" if hint else note
     num = len(arrays.cost)
     if top is not None:
         arrays = arrays.take(slice(0, top))
@@ -269,8 +275,7 @@ def refine_hypotheses(model, contacts, arrays, tolerance, *, prior=None, robust=
     out, agreeing = refined(arrays)
     if prior is None or (agreeing > 0 and out.chi2[0] <= fit_threshold(contacts.n)):
         return out, ""
-    wide = Tolerance(fg.RESCUE_WIDEN * tolerance.distance, min(fg.RESCUE_WIDEN * tolerance.angle, np.pi),
-                     tolerance.position_noise, tolerance.normal_noise)
+    wide = tolerance.widened(fg.RESCUE_WIDEN)
     arrays = arrays.merged(search(model, contacts, wide, prior=prior)[0])
     arrays = arrays.take(np.sort(np.unique(arrays.facets, axis=0, return_index=True)[1]))  # found twice
     how = f"searched again with {fg.RESCUE_WIDEN:g}x the pair tolerances"
@@ -329,6 +334,25 @@ def _patch_hypotheses(model, contacts, S, tolerance, prior, deadline=None, progr
         facets = nearest_members(patches, model.triangles, tuples, res.to_object_frame(fit.R, fit.t, contacts.points))
         normals, offsets, centres = model.planes.normals[facets], model.planes.offsets[facets], model.centroids[facets]
     return facets
+
+
+def _widen(model, contacts, arrays, tolerance, solver, prior, deadline, progress, timing):
+    """When nothing matched: search again with the pair tolerances widened by each factor of
+    WIDEN_SCHEDULE in turn (3σ gates become 4.5σ, then 6σ), stopping at the first that finds
+    hypotheses, at the time limit, or when the contacts could not fit even the widest gate.
+    Gaussian noise has tails beyond any fixed gate: one reading at 4σ must not empty the
+    answer. Returns (arrays, what was widened), or the empty ``arrays`` and ""."""
+    for factor in WIDEN_SCHEDULE:
+        wide = tolerance.widened(factor)
+        if deadline.passed or contacts.spread > model.diameter + wide.distance:
+            break
+        found, more = search(model, contacts, wide, solver=solver, prior=prior, deadline=deadline, progress=progress)
+        for key in timing:
+            timing[key] += more[key]
+        if len(found.cost):
+            return found, (f"nothing matched at the stated noise: the pair tolerances were widened {factor:g}x "
+                            f"(distance ±{wide.distance:.3g}, angle ±{np.degrees(wide.angle):.3g}°)")
+    return arrays, ""
 
 
 def _check_outliers(max_outliers, method, n):

@@ -171,3 +171,23 @@ def test_no_bar_off_a_terminal():
     proc = subprocess.run([sys.executable, "-c", SLOW_SEARCH], capture_output=True, text=True, timeout=120,
                           env=dict(os.environ, CONTACTPOSE_PROGRESS_DELAY="0"))
     assert "tree:" not in proc.stderr and "start/s" not in proc.stderr
+
+
+def test_an_empty_answer_widens_the_tolerances_first(small_model):
+    """A normal beyond the 3σ gate empties the search at the stated noise on a 20-facet
+    mesh; localize then widens the gates (1.5x, 2x) and says so, instead of no_hypothesis."""
+    from scipy.spatial.transform import Rotation
+
+    from contactpose.localize import search
+
+    tol = Tolerance.from_noise(0.0005, 1.0)
+    g = simulate.grasp(small_model, np.random.default_rng(0), n=4, **NOISE, noise="bounded")
+    normals = g.contacts.finger_normals.copy()
+    axis = np.cross(normals[0], [0.3, 0.5, 0.8])
+    normals[0] = Rotation.from_rotvec(1.3 * tol.angle * axis / np.linalg.norm(axis)).apply(normals[0])
+    tilted = Contacts(g.contacts.points, finger_normals=normals)  # one reading far out in the tail
+    assert len(search(small_model, tilted, tol)[0].cost) == 0
+    r = localize(small_model, tilted, **NOISE)
+    assert r.status != "no_hypothesis" and len(r.hypotheses) > 0
+    assert "the pair tolerances were widened 1.5x" in r.hint
+    assert set(r.best.facets.tolist()) == set(g.facets.tolist()) or r.status == "poor_fit"
