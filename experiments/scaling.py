@@ -32,6 +32,7 @@ from contactpose import sweep
 from contactpose.localize import localize
 from contactpose.model.object_model import ObjectModel
 from contactpose.sim import grasps as simulate
+from contactpose.sim import objects
 
 NAME = "scaling"
 PAPER_BANANA = {"m": 53, "offline_ms": 40.0, "online_ms": 116.0}
@@ -69,14 +70,7 @@ def rock_mesh(freq, size=0.12, seed=SHAPE_SEED, waves=12, max_freq=4.0, amplitud
     """A star-shaped rock with 20 freq² facets: radius 1 + amplitude·field(direction) on the
     geodesic sphere, largest bounding-box extent ``size`` (m), centred on its bounding box."""
     dirs, faces = geodesic_sphere(freq)
-    rng = np.random.default_rng(seed)
-    axes = rng.normal(size=(waves, 3))
-    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
-    w = rng.uniform(1.0, max_freq, waves)
-    phase = rng.uniform(0.0, 2 * np.pi, waves)
-    amp = rng.uniform(0.5, 1.0, waves) / w
-    field = np.cos(w * (dirs @ axes.T) + phase) @ amp
-    radius = 1.0 + amplitude * field / np.abs(field).max()
+    radius = 1.0 + amplitude * objects.radial_noise(dirs, np.random.default_rng(seed), waves, max_freq)
     verts = dirs * radius[:, None]
     verts *= size / np.ptp(verts, axis=0).max()
     verts -= (verts.max(0) + verts.min(0)) / 2

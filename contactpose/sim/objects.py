@@ -114,7 +114,7 @@ def _geodesic_sphere(freq: int) -> trimesh.Trimesh:
     return _mesh(directions, mesh.faces)
 
 
-def _radial_noise(directions, rng, n_waves: int, max_freq: float):
+def radial_noise(directions, rng, n_waves: int, max_freq: float):
     """Smooth random field on the unit sphere, (V, 3) directions -> (V,) values.
 
     A sum of ``n_waves`` plane waves cos(w * d.u + phase) with random unit
@@ -290,7 +290,7 @@ def make_rock() -> trimesh.Trimesh:
     sphere = _geodesic_sphere(4)
     d = sphere.vertices
     rng = np.random.default_rng(314)
-    radius = 1.0 + 0.3 * _radial_noise(d, rng, n_waves=6, max_freq=3.0)
+    radius = 1.0 + 0.3 * radial_noise(d, rng, n_waves=6, max_freq=3.0)
     radius *= np.linalg.norm(d * [1.0, 0.85, 0.7], axis=1)
     return _star_shaped(d, sphere.faces, radius, 0.12)
 
@@ -305,7 +305,7 @@ def make_rock1k() -> trimesh.Trimesh:
     sphere = _geodesic_sphere(7)
     d = sphere.vertices
     rng = np.random.default_rng(1000)
-    radius = 1.0 + 0.15 * _radial_noise(d, rng, n_waves=8, max_freq=3.5)
+    radius = 1.0 + 0.15 * radial_noise(d, rng, n_waves=8, max_freq=3.5)
     knob = np.array([0.3, 0.8, 0.5]) / np.linalg.norm([0.3, 0.8, 0.5])
     dent = np.array([-0.2, -0.4, 0.9]) / np.linalg.norm([-0.2, -0.4, 0.9])
     radius += 0.6 * np.exp(-(1 - d @ knob) / 0.06)
@@ -420,7 +420,7 @@ def _symmetric_rock(directions, faces, turn, folds: int, shape) -> trimesh.Trime
     """
     field, turned = 0.0, directions
     for _ in range(folds):
-        field = field + _radial_noise(turned, np.random.default_rng(2003), n_waves=6, max_freq=3.0)
+        field = field + radial_noise(turned, np.random.default_rng(2003), n_waves=6, max_freq=3.0)
         turned = turned @ turn.T
     radius = (1.0 + 0.3 / folds * field) * shape
     return _star_shaped(directions, faces, radius, 0.12)
