@@ -414,9 +414,9 @@ def _warn_explosion(S, n, tolerance, model, triple=None):
         return
     expected = expected_tuples(S, n, triple)
     if expected > EXPLOSION_TUPLES:
-        warnings.warn(f"the search may explode: about {expected:.2g} hypotheses expected from the pair sets "
-                      f"(tolerances ±{tolerance.distance:.3g} and ±{np.degrees(tolerance.angle):.3g}° on "
-                      f"{model.num_facets} facets); state smaller noise, use a coarser mesh or set time_limit",
+        warnings.warn(f"the search may explode: about {expected:.2g} hypotheses, from the tree grown on a sample "
+                      f"of its start nodes (tolerances ±{tolerance.distance:.3g} and ±{np.degrees(tolerance.angle):.3g}° "
+                      f"on {model.num_facets} facets); state smaller noise, use a coarser mesh or set time_limit",
                       stacklevel=4)
 
 
