@@ -80,5 +80,10 @@ def run(args):
     print(f"ordered pairs: {d['ordered_pairs']}")
     print(f"build time: {seconds * 1000:.1f} ms (features {model.build_seconds['features'] * 1000:.1f} ms, "
           f"table {model.build_seconds['table'] * 1000:.1f} ms)")
-    print(f"file: {out} ({os.path.getsize(out) / 1024:.1f} KiB)")
+    print(f"file: {out} ({_file_size(os.path.getsize(out))})")
     return 0
+
+
+def _file_size(nbytes):
+    """'812.4 KiB' below 1 MiB, else '54.7 MB'."""
+    return f"{nbytes / 1024:.1f} KiB" if nbytes < 2**20 else f"{nbytes / 1e6:.1f} MB"

@@ -1,11 +1,13 @@
 """The model file: one .npz of named arrays, written atomically, checked on the way back in.
 
 * Writing: :func:`write_replacing` saves to a new file and renames it over the old one, so a
-  reader that maps the old file keeps a valid inode.
+  reader that maps the old file keeps a valid inode. Members named in ``compress`` are
+  deflated; the others are stored, so that files of MMAP_MIN_BYTES or more can be mapped.
 * Reading: :func:`read_npz` first reads only the ``.npy`` headers (:func:`member_sizes`) and
   checks each declared shape and dtype against the bytes the member holds, and the total
   against the available memory (:func:`check_room`); files of MMAP_MIN_BYTES or more are
-  memory-mapped (:func:`mmap_npz`). Every failure is a ModelFileError (ResourceError when
+  memory-mapped (:func:`mmap_npz`). :func:`free_memory` is what "available" means: the
+  system's available memory, or less under an RLIMIT_AS ceiling. Every failure is a ModelFileError (ResourceError when
   memory runs short) that names the file.
 * Checking: a spec maps an array name to ``(kind, shape)`` or ``(kind, shape, (low, high))``.
   kind: "i" signed integer, "f" finite float32/float64, "F" float32/float64 that may be
@@ -40,7 +42,8 @@ STORED_MODEL = {
     "vertices": ("f", ("V", 3)), "faces": ("i", ("m", 3), (0, "V")),
     "normals": ("f", ("m", 3)), "offsets": ("f", ("m",)), "areas": ("f", ("m",)), "valid": ("b", ("m",)),
 }
-#: PairFeatures of P pairs of items (facets or patches) 0 .. n-1.
+#: PairFeatures of P pairs of items (facets or patches) 0 .. n-1. k and l may be int16
+#: (files of models with fewer than 32,768 facets or patches).
 STORED_FEATURES = {
     "k": ("i", ("P",), (0, "n")), "l": ("i", ("P",), (0, "n")),
     "dmax": ("f", ("P",)), "dmin_vertex": ("f", ("P",)), "dmin_exact": ("f", ("P",)),
@@ -118,21 +121,35 @@ def _check_range(name, a, low, high, sizes):
 
 #: Version of the .npz model file layout. Bump on any incompatible change.
 #: 2: every array is checked on load (stored.py), and files are replaced, not rewritten.
-FORMAT_VERSION = 2
+#: 3: compact files: facet pair indices as int16 where they fit, the facet table's vertex-only
+#: Δmin and direction intervals left out (recomputed on load), large members deflated.
+FORMAT_VERSION = 3
 
 
 #: Model files larger than this are memory-mapped instead of read into memory.
 MMAP_MIN_BYTES = 256 * 2**20
+#: A file read into memory takes up to this many times its arrays' bytes once loaded: int16
+#: pair indices widen to int32 and the facet table's derived fields are recomputed.
+LOAD_FACTOR = 3.0
+#: Members smaller than this are stored, not deflated: compression gains little on them,
+#: and a damaged stored member is reported by its CRC.
+COMPRESS_MIN_BYTES = 64 * 2**10
 
 
-def write_replacing(path, arrays):
-    """np.savez to a new file in path's folder, then os.replace it over path: the old
-    file's inode stays intact for whoever maps it. OSError -> ModelFileError."""
+def write_replacing(path, arrays, compress=()):
+    """The arrays as an .npz in a new file in path's folder, then os.replace it over path:
+    the old file's inode stays intact for whoever maps it. compress : names of the members
+    to deflate (zlib level 6, as np.savez_compressed); the others are stored.
+    OSError -> ModelFileError."""
     folder, name = os.path.split(os.path.abspath(path))
     tmp = os.path.join(folder, f".{name}.{os.getpid()}-{secrets.token_hex(4)}.tmp")
     try:
-        with open(tmp, "xb") as fh:
-            np.savez(fh, **arrays)
+        with open(tmp, "xb") as fh, zipfile.ZipFile(fh, "w", allowZip64=True) as zf:
+            for key, a in arrays.items():
+                info = zipfile.ZipInfo(key + ".npy", date_time=(1980, 1, 1, 0, 0, 0))
+                info.compress_type = zipfile.ZIP_DEFLATED if key in compress else zipfile.ZIP_STORED
+                with zf.open(info, "w", force_zip64=True) as member:
+                    np.lib.format.write_array(member, np.asanyarray(a), allow_pickle=False)
         os.replace(tmp, path)
     except OSError as exc:
         raise ModelFileError(f"cannot write model file {path!r}: {exc.strerror or exc}") from None
@@ -168,7 +185,7 @@ def content_hash(arrays):
     for key in sorted(arrays):
         a = np.ascontiguousarray(arrays[key])
         digest.update(f"{key}|{a.dtype.str}|{a.shape}|".encode())
-        digest.update(a.tobytes())
+        digest.update(a.tobytes() if a.dtype.kind == "U" or a.ndim == 0 else memoryview(a.reshape(-1)).cast("B"))
     return digest.hexdigest()
 
 
@@ -206,14 +223,34 @@ def read_npz(path):
             raise out_of_memory(path) from None
         except Exception as exc:  # a foreign layout (e.g. compressed): np.load below reads it or says why
             log.debug("cannot memory-map %s (%s: %s); reading it instead", path, type(exc).__name__, exc)
-    check_room(path, sum(sizes.values()))
+    check_room(path, sum(sizes.values()), LOAD_FACTOR)
     try:
-        with np.load(path, allow_pickle=False) as npz:
-            return {key: npz[key] for key in npz.files}
+        return _read_members(path, sizes)
     except MemoryError:
         raise out_of_memory(path) from None
     except Exception as exc:  # any failure to decode the bytes means a damaged or foreign file
         raise ModelFileError(unreadable(path, exc)) from None
+
+
+def _read_members(path, sizes, workers=2):
+    """np.load of every member, the members split by size over ``workers`` threads (zlib
+    inflates outside the GIL, so deflated files read about twice as fast on two cores)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    groups = [[] for _ in range(workers)]
+    load = [0] * workers
+    for name in sorted(sizes, key=sizes.get, reverse=True):
+        g = load.index(min(load))
+        groups[g].append(name.removesuffix(".npy"))
+        load[g] += sizes[name]
+
+    def read(keys):
+        with np.load(path, allow_pickle=False) as npz:
+            return {key: npz[key] for key in keys}
+
+    with ThreadPoolExecutor(workers) as pool:
+        parts = list(pool.map(read, [g for g in groups if g]))
+    return {key: part[key] for part in parts for key in part}
 
 
 def unreadable(path, exc):
@@ -261,14 +298,29 @@ def _data_bytes(info, fh):
     return held
 
 
-def check_room(path, nbytes):
-    """ResourceError if reading nbytes of arrays from the model file at path would not fit in memory."""
+def free_memory():
+    """Bytes this process may still allocate: the system's available memory, or less if an
+    RLIMIT_AS ceiling is set (the ceiling minus the process's current address space)."""
     import psutil
 
     available = psutil.virtual_memory().available
-    if nbytes > 0.8 * available:
+    with contextlib.suppress(ImportError, OSError, ValueError):
+        import resource
+
+        soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+        if soft != resource.RLIM_INFINITY:
+            available = min(available, max(0, soft - psutil.Process().memory_info().vms))
+    return available
+
+
+def check_room(path, nbytes, factor=1.0):
+    """ResourceError if reading nbytes of arrays from the model file at path, which take
+    factor times that once loaded, would not fit in memory."""
+    available = free_memory()
+    if factor * nbytes > 0.8 * available:
         raise ResourceError(
-            f"model file {path!r} holds {nbytes / 2**30:.3g} GiB of arrays, but only "
+            f"model file {path!r} holds {nbytes / 2**30:.3g} GiB of arrays (about {factor * nbytes / 2**30:.3g} GiB "
+            f"loaded), but only "
             f"{available / 2**30:.3g} GiB of memory is available; free memory or rebuild with a smaller "
             "--max-span")
     return nbytes

@@ -22,7 +22,10 @@ import trimesh
 from contactpose import tol
 from contactpose.errors import ContactPoseError, MeshError, ModelFileError
 from contactpose.io.modelfile import (
+    COMPRESS_MIN_BYTES,
     FORMAT_VERSION,
+    MMAP_MIN_BYTES,
+    STORED_FEATURES,
     STORED_MODEL,
     check_arrays,
     check_version,
@@ -31,9 +34,11 @@ from contactpose.io.modelfile import (
     read_npz,
     write_replacing,
 )
-from contactpose.model.features import NearPairs, PairFeatures, pair_features
+from contactpose.model.features import DERIVED_FIELDS, PairFeatures, derived_features, pair_features
+from contactpose.model.memory import check_fits
 from contactpose.model.patches import Patches, PatchPairs, find_patches
-from contactpose.model.table import DEFAULT_BINS, STORED_BYTES_PER_PAIR, PairTable, check_bins, check_memory
+from contactpose.model.plan import PairPlan
+from contactpose.model.table import DEFAULT_BINS, STORED_BYTES_PER_PAIR, PairTable, check_bins
 
 log = logging.getLogger(__name__)
 
@@ -47,6 +52,17 @@ BOUNDS = ("exact", "paper")
 #: a mean over 256 points moves by under 0.4 % of the diameter against all of them (measured
 #: on six built-in objects), and the 5 % class threshold is a convention, not a measurement.
 CLASS_POINTS = 256
+#: Peak bytes per facet of the mesh-level steps (planes, merged mesh, patches, their layout),
+#: checked before they run; measured 750-780 B/facet (traced numpy peak) on 82 k and 328 k facets.
+MESH_BYTES_PER_FACET = 1024
+#: What the build allocates after the early memory check and before the pairs: the patch
+#: layout (measured 390-430 B/facet), and for the diameter qhull's memory per vertex (peak RSS
+#: 111 MiB on 983 k vertices: 120 B/vertex) and the blocks of hull-point differences.
+LAYOUT_BYTES_PER_FACET = 512
+HULL_BYTES_PER_VERTEX = 160
+#: Before the diameter D is known, facet validity is decided for every D in
+#: [EARLY_LOW · diagonal, diagonal] at once (the bounding-box diagonal bounds D from above).
+EARLY_LOW = 0.01
 
 
 @dataclass(frozen=True)
@@ -69,6 +85,12 @@ def facet_planes(triangles, diameter):
     triangles : (m, 3, 3) float; diameter : float, sets the degeneracy scale.
     A facet is degenerate when its area or its shortest altitude is near zero.
     """
+    measures = _facet_measures(triangles)
+    return _planes_of(triangles, measures, _nondegenerate(measures, diameter))
+
+
+def _facet_measures(triangles):
+    """(cross products (m, 3), doubled areas (m,), altitudes onto the longest edge (m,))."""
     cross = np.cross(triangles[:, 1] - triangles[:, 0], triangles[:, 2] - triangles[:, 0])
     double_area = np.linalg.norm(cross, axis=1)
     longest_edge = np.max(
@@ -76,11 +98,39 @@ def facet_planes(triangles, diameter):
     )
     # altitude onto the longest edge = 2·area / longest edge
     altitude = np.divide(double_area, longest_edge, out=np.zeros_like(double_area), where=longest_edge > 0)
-    valid = (0.5 * double_area > tol.AREA_REL * diameter**2) & (altitude > tol.ALTITUDE_REL * diameter)
+    return cross, double_area, altitude
+
+
+def _nondegenerate(measures, diameter):
+    _, double_area, altitude = measures
+    return (0.5 * double_area > tol.AREA_REL * diameter**2) & (altitude > tol.ALTITUDE_REL * diameter)
+
+
+def _planes_of(triangles, measures, valid):
+    cross, double_area, _ = measures
     normals = np.zeros_like(cross)
     normals[valid] = cross[valid] / double_area[valid, None]
     offsets = -np.einsum("ij,ij->i", normals, triangles[:, 0])
     return FacetPlanes(normals, offsets, 0.5 * double_area, valid)
+
+
+def early_planes(triangles, vertices):
+    """Facet planes before the diameter: (planes, diameter), the diameter None when not needed.
+
+    Validity depends on the diameter D only through its thresholds; D lies below the
+    bounding-box diagonal. When no facet changes validity for D in [EARLY_LOW · diagonal,
+    diagonal], the planes are those of any such D and the diameter (a convex hull: seconds on
+    10⁵ vertices) can wait until the memory guard has passed; else it is computed here.
+    """
+    diagonal = float(np.linalg.norm(np.ptp(vertices, axis=0)))
+    if not diagonal > 0:
+        raise MeshError("mesh has zero extent (all vertices coincide)")
+    measures = _facet_measures(triangles)
+    valid = _nondegenerate(measures, diagonal)
+    if np.array_equal(valid, _nondegenerate(measures, EARLY_LOW * diagonal)):
+        return _planes_of(triangles, measures, valid), None
+    diameter = mesh_diameter(vertices)
+    return _planes_of(triangles, measures, _nondegenerate(measures, diameter)), diameter
 
 
 def load_mesh(source):
@@ -144,8 +194,17 @@ def mesh_diameter(vertices):
             pass  # flat vertex sets: fall back to all vertices
     if len(pts) > 4000:
         pts = pts[:: len(pts) // 4000 + 1]
-    diff = pts[:, None, :] - pts[None, :, :]
-    return float(np.sqrt(np.max(np.einsum("ijk,ijk->ij", diff, diff))))
+    best = 0.0
+    for start in range(0, len(pts), 256):  # blocks of rows: 25 MB of differences, not 400 MB
+        diff = pts[start:start + 256, None, :] - pts[None, :, :]
+        best = max(best, float(np.max(np.einsum("ijk,ijk->ij", diff, diff))))
+    return float(np.sqrt(best))
+
+
+def _diameter_bytes(num_vertices):
+    """Peak bytes of :func:`mesh_diameter`: qhull, and 256 rows of (3,) differences and their
+    squares against at most 4,000 hull points."""
+    return HULL_BYTES_PER_VERTEX * num_vertices + 256 * min(num_vertices, 4000) * 32
 
 
 def merged_mesh(vertices, faces):
@@ -235,23 +294,26 @@ class ObjectModel:
         if bounds not in BOUNDS:
             raise MeshError(f"bounds must be one of {BOUNDS}, got {bounds!r}")
         bins = check_bins(bins)
-        start = time.perf_counter()
-        vertices, faces = load_mesh(mesh)
-        if fix_normals:
-            faces = rewind_outward(vertices, faces)
-        triangles = vertices[faces]
-        diameter = mesh_diameter(vertices)
-        if not diameter > 0:
-            raise MeshError("mesh has zero extent (all vertices coincide)")
-        planes = facet_planes(triangles, diameter)
-        merged = merged_mesh(vertices, faces)
-        _report_facets(planes, merged)
         max_span = _check_span(max_span)
-        pair_count = _pair_count(triangles, planes, max_span)
+        start = time.perf_counter()
+        vertices, faces = _load_checked(mesh, fix_normals)
+        triangles = vertices[faces]
+        planes, diameter = early_planes(triangles, vertices)
+        _report_degenerate(planes)
+        merged = merged_mesh(vertices, faces)
         patches = _find_patches(merged, planes, bounds, patch_tol_deg)
+        plan = PairPlan(triangles, planes.valid, patches, _serves(patches),
+                        lambda count: _keep_facet_pairs(facet_pairs, patches, count))
+        pair_count = plan.facet_pairs(max_span)
         keep = _keep_facet_pairs(facet_pairs, patches, pair_count)
+        later = LAYOUT_BYTES_PER_FACET * len(faces) + (_diameter_bytes(len(vertices)) if diameter is None else 0)
+        plan.check(len(faces), max_span, extra=later)  # before any pair is listed
+        _report_winding(merged)
+        if diameter is None:
+            diameter, planes, patches = _late_diameter(vertices, triangles, planes, patches,
+                                                       lambda p: _find_patches(merged, p, bounds, patch_tol_deg))
         patch_pairs = PatchPairs(triangles, planes, patches, diameter, max_span) if _serves(patches) else None
-        check_memory(pair_count if keep else 0, len(faces), max_span, 0 if patch_pairs is None else patch_pairs.count)
+        plan.check(len(faces), max_span, (pair_count if keep else 0, 0 if patch_pairs is None else patch_pairs.count))
         t_planes = time.perf_counter()
         patch_table = None if patch_pairs is None else PairTable.build(patch_pairs.features(progress), bins, max_span)
         del patch_pairs
@@ -343,9 +405,24 @@ class ObjectModel:
     def save(self, path):
         """Write the model to one ``.npz`` (no pickle). Returns the path written.
 
-        The file is written beside ``path`` and renamed over it, so a process that has
-        the old file memory-mapped keeps its contents."""
+        Compact when that leaves less than MMAP_MIN_BYTES of arrays: pair indices as int16
+        where they fit, the facet table without its DERIVED_FIELDS (cheap and exact:
+        :meth:`load` recomputes them bit for bit), members of COMPRESS_MIN_BYTES or more
+        deflated. Otherwise every array is stored as built, uncompressed, for :meth:`load`
+        to memory-map. The file is written beside ``path`` and renamed over it, so a process
+        that has the old file memory-mapped keeps its contents."""
         path = os.fspath(path)
+        arrays = self._file_arrays(compact=True)
+        compact = sum(a.nbytes for a in arrays.values()) < MMAP_MIN_BYTES
+        if not compact:
+            arrays = self._file_arrays(compact=False)
+        arrays["content_hash"] = np.array(content_hash(arrays))
+        deflate = [k for k, a in arrays.items() if a.nbytes >= COMPRESS_MIN_BYTES] if compact else []
+        write_replacing(path, arrays, compress=deflate)
+        return path
+
+    def _file_arrays(self, compact):
+        """{name: array} of a model file (see :meth:`save`), without its content hash."""
         arrays = {
             "format_version": np.array(FORMAT_VERSION),
             "mesh_hash": np.array(self.mesh_hash),
@@ -359,16 +436,16 @@ class ObjectModel:
             "valid": self.planes.valid,
         }
         if self.table is not None:
-            arrays.update({f"features_{k}": v for k, v in self.features.to_arrays().items()})
+            stored = _file_features(self.features, self.num_facets, compact, derived=compact)
+            arrays.update({f"features_{k}": v for k, v in stored.items()})
             arrays.update({f"table_{k}": v for k, v in self.table.to_arrays().items()})
         if self.patches is not None:
             arrays.update({f"patches_{k}": v for k, v in self.patches.to_arrays().items()})
         if self.patch_table is not None:
-            arrays.update({f"pfeatures_{k}": v for k, v in self.patch_table.features.to_arrays().items()})
+            stored = _file_features(self.patch_table.features, self.patches.count, compact, derived=False)
+            arrays.update({f"pfeatures_{k}": v for k, v in stored.items()})
             arrays.update({f"ptable_{k}": v for k, v in self.patch_table.to_arrays().items()})
-        arrays["content_hash"] = np.array(content_hash(arrays))
-        write_replacing(path, arrays)
-        return path
+        return arrays
 
     @classmethod
     def load(cls, path, *, mesh=None, bins=None, bounds=None):
@@ -421,6 +498,32 @@ class ObjectModel:
         if bounds is not None and bounds != self.bounds:
             raise ModelFileError(f"model file {path!r} was built with bounds={self.bounds!r}, but bounds={bounds!r} was asked for")
 
+    def __repr__(self):
+        """One line: counts, settings, diameter and the arrays' memory; never the arrays."""
+        d = self.describe()
+        parts = [f"{d['facets']:,} facets"]
+        if d["patches"] is not None:
+            parts.append(f"{d['patches']:,} patches")
+        parts.append(f"{d['ordered_pairs']:,} ordered {'facet' if self.table is not None else 'patch'} pairs")
+        if self.table is None:
+            parts.append("no facet table")
+        parts += [f"bins {tuple(self.bins)}", f"bounds={self.bounds!r}", f"diameter {self.diameter:.3g} (mesh units)"]
+        if self.max_span is not None:
+            parts.append(f"max_span {self.max_span:.3g}")
+        parts.append(f"{self.nbytes / 1e6:.3g} MB")
+        return f"ObjectModel({', '.join(parts)})"
+
+    @property
+    def nbytes(self):
+        """Bytes of the model's arrays (mesh, planes, patches and tables)."""
+        arrays = [self.vertices, self.faces, *vars(self.planes).values()]
+        for table in (self.table, self.patch_table):
+            if table is not None:
+                arrays += [*table.features.to_arrays().values(), table.offsets]
+        if self.patches is not None:
+            arrays += list(self.patches.to_arrays().values())
+        return int(sum(np.asarray(a).nbytes for a in arrays))
+
     def describe(self):
         """A dict of the model's size and settings, for reports."""
         return {
@@ -434,6 +537,26 @@ class ObjectModel:
             "max_span": self.max_span,
             "patches": None if self.patches is None else self.patches.count,
         }
+
+
+def _load_checked(mesh, fix_normals):
+    """(vertices, faces) of a mesh, refused first if its facets alone will not fit in memory;
+    faces re-wound outward when asked."""
+    vertices, faces = load_mesh(mesh)
+    check_fits(MESH_BYTES_PER_FACET * len(faces), f"preparing the {len(faces):,} facets of the mesh",
+               "decimate the mesh")
+    return vertices, (rewind_outward(vertices, faces) if fix_normals else faces)
+
+
+def _late_diameter(vertices, triangles, planes, patches, find):
+    """(diameter, planes, patches) once the memory guard has passed: the planes and patches
+    (find : planes -> patches) are redone in the case early_planes did not cover, a diameter
+    below its bracket."""
+    diameter = mesh_diameter(vertices)
+    if diameter < EARLY_LOW * np.linalg.norm(np.ptp(vertices, axis=0)):
+        planes = facet_planes(triangles, diameter)
+        patches = find(planes)
+    return diameter, planes, patches
 
 
 def _find_patches(merged, planes, bounds, tol_deg):
@@ -463,6 +586,17 @@ def _keep_facet_pairs(facet_pairs, patches, pair_count):
     return facet_pairs
 
 
+def _file_features(features, items, compact, derived):
+    """A PairFeatures' arrays as a file stores them. items : facets or patches the pairs index;
+    compact : k, l as int16 when items < 2¹⁵; derived : leave out DERIVED_FIELDS."""
+    arrays = features.to_arrays()
+    if compact and derived:
+        arrays = {k: v for k, v in arrays.items() if k not in DERIVED_FIELDS}
+    if compact and items < 2**15:
+        arrays["k"], arrays["l"] = arrays["k"].astype(np.int16), arrays["l"].astype(np.int16)
+    return arrays
+
+
 def _stored_tables(data, facets):
     """(facet table, patches, patch table) of a model file's arrays, None where absent.
     facets : (m, the array that gives it)."""
@@ -474,15 +608,27 @@ def _stored_tables(data, facets):
         patch_table = _stored_table(data, ("ptable_", "pfeatures_"), (patches.count, "patches_normals"))
     table = None
     if _has(data, "table_", "features_") or patch_table is None:  # a model has at least one table
-        table = _stored_table(data, ("table_", "features_"), facets)
+        triangles = data["vertices"][data["faces"]]
+        table = _stored_table(data, ("table_", "features_"), facets, (triangles, data["normals"]))
     return table, patches, patch_table
 
 
-def _stored_table(data, prefixes, items):
+def _stored_table(data, prefixes, items, planes=None):
     """A PairTable from the arrays named prefixes[0] + ... and prefixes[1] + ...;
-    items : (number of facets or patches its pairs index, the array that gives it)."""
-    features = PairFeatures.from_arrays(prefixed(data, prefixes[1]))
+    items : (number of facets or patches its pairs index, the array that gives it);
+    planes : (triangles, normals) of a facet table, whose DERIVED_FIELDS a compact file leaves out."""
+    arrays = {k: _as_int32(v) if k in ("k", "l") else v for k, v in prefixed(data, prefixes[1]).items()}
+    if planes is not None and not any(f in arrays for f in DERIVED_FIELDS):
+        check_arrays(arrays, STORED_FEATURES, {"n": items}, prefixes[1], ("dmin_exact", "alpha_hi") + DERIVED_FIELDS)
+        arrays.update(derived_features(*planes, arrays["k"], arrays["l"]))
+    features = PairFeatures.from_arrays(arrays)
     return PairTable.from_arrays(prefixed(data, prefixes[0]), features, {"n": items}, prefixes)
+
+
+def _as_int32(a):
+    """Pair indices stored as int16 widened to the int32 the build uses (other arrays unchanged)."""
+    a = np.asanyarray(a)
+    return a.astype(np.int32) if a.dtype.kind == "i" and a.dtype.itemsize < 4 else a
 
 
 def _has(data, *prefixes):
@@ -501,16 +647,8 @@ def _check_span(max_span):
     return value
 
 
-def _pair_count(triangles, planes, max_span):
-    """Unordered pairs the table will hold (an upper bound with a span)."""
-    v = int(planes.valid.sum())
-    if max_span is None:
-        return v * (v + 1) // 2
-    return NearPairs.of_facets(triangles, np.flatnonzero(planes.valid), max_span).count_bound()
-
-
-def _report_facets(planes, merged):
-    """Log and warn about degenerate facets and suspicious winding."""
+def _report_degenerate(planes):
+    """Warn about degenerate facets; MeshError if every facet is."""
     bad = np.flatnonzero(~planes.valid)
     if len(bad) == len(planes.valid):
         raise MeshError(f"all {len(bad)} facets are degenerate (zero or near-zero area)")
@@ -520,6 +658,10 @@ def _report_facets(planes, merged):
             f"{len(bad)} degenerate facets excluded from pairs (indices kept): {shown}",
             stacklevel=3,
         )
+
+
+def _report_winding(merged):
+    """Warn about inward or inconsistent winding. merged : the vertex-merged mesh."""
     problem = winding_report(merged)
     if problem:
         warnings.warn(f"{problem}; contact normals will not match (try `--fix-normals`)", stacklevel=3)

@@ -318,6 +318,13 @@ def _patch_vertices(triangles, labels, p):
     return vtx_ptr, uniq[key % len(uniq)]
 
 
+def patch_spheres(triangles, patches):
+    """Bounding spheres of the patches, as :class:`PatchLayout` has them, without the layout:
+    the same corner positions give the same box centres and farthest points.
+    -> centres (p, 3), radii (p,)"""
+    return _spheres(triangles[patches.members].reshape(-1, 3), 3 * patches.indptr)
+
+
 def _spheres(points, ptr):
     """Bounding spheres (bounding-box centre, farthest point) of runs points[ptr[i]:ptr[i+1]]."""
     lo = np.minimum.reduceat(points, ptr[:-1], axis=0)
@@ -380,8 +387,7 @@ def _candidates(layout, max_span):
         a = np.repeat(np.arange(p, dtype=np.int32), counts)
         first = np.repeat(np.cumsum(counts) - counts, counts)
         return a, (np.arange(len(a)) - first + a).astype(np.int32)
-    a, b = NearPairs(layout.centre, layout.radius, max_span).rows(0, p)
-    return a.astype(np.int32), b.astype(np.int32)
+    return NearPairs(layout.centre, layout.radius, max_span).all_rows()
 
 
 class _PatchPairOutput:

@@ -17,7 +17,7 @@ import numba
 import numpy as np
 
 from contactpose import tol
-from contactpose.errors import ContactPoseError, ModelFileError, ResourceError
+from contactpose.errors import ContactPoseError, ModelFileError
 from contactpose.io.modelfile import STORED_FEATURES, STORED_TABLE, check_arrays, check_pointers
 from contactpose.model.features import CHUNK_PAIRS, PairFeatures
 
@@ -67,22 +67,6 @@ def estimate_bytes(num_pairs, num_patch_pairs=0):
     chunk = min(num_pairs, CHUNK_PAIRS) * CHUNK_TEMP_BYTES_PER_PAIR
     sort = num_pairs * SORT_BYTES_PER_PAIR
     return max(stored + chunk, stored + sort) + num_patch_pairs * PATCH_PAIR_BYTES
-
-
-def check_memory(num_pairs, num_facets, max_span=None, num_patch_pairs=0):
-    """Refuse, before building, a table that will not fit in the available memory."""
-    import psutil
-
-    need = estimate_bytes(num_pairs, num_patch_pairs)
-    available = psutil.virtual_memory().available
-    if need > 0.8 * available:
-        advice = "a smaller max_span" if max_span is not None else "max_span (the hand's span, `--max-span L`)"
-        raise ResourceError(
-            f"the pair table for {num_facets} facets ({num_pairs:,} facet pairs, {num_patch_pairs:,} patch pairs) "
-            f"needs about {need / 2**30:.1f} GiB, but only {available / 2**30:.1f} GiB is available; "
-            f"decimate the mesh or set {advice}"
-        )
-    return need
 
 
 @dataclass

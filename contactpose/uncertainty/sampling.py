@@ -42,6 +42,7 @@ import numpy as np
 from numba import njit
 
 from contactpose.errors import ContactPoseError, check_count
+from contactpose.model.memory import check_fits
 from contactpose.scoring.rank import closed_form_arrays
 from contactpose.solvers import factor_graph as fg
 from contactpose.types import json_array, json_number
@@ -349,6 +350,9 @@ def run_ensemble(log_prob, covariance, n_samples, rng, *, n_walkers=DEFAULT_WALK
     if check_count(n_walkers, "n_walkers", minimum=2 * dim) % 2:
         raise ContactPoseError(f"n_walkers must be an even integer >= {2 * dim}, got {n_walkers!r}")
     max_steps = check_count(max_steps, "max_steps")
+    # emcee keeps (steps, walkers, d + 1) float64 and copies it as the chain grows
+    check_fits(16 * n_walkers * (dim + 1) * (max_steps + PILOT_STEPS), f"sampling {n_walkers} walkers for up to "
+               f"{max_steps:,} steps", "lower n_walkers or max_steps")
     if not isinstance(rng, np.random.Generator):
         raise ContactPoseError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
     from tqdm.auto import tqdm

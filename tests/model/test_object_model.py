@@ -355,6 +355,23 @@ def test_memory_guard_refuses_with_gib_message(monkeypatch, banana_mesh):
         ObjectModel.from_mesh(banana_mesh)
 
 
+def test_memory_guard_names_a_span_that_fits(monkeypatch):
+    """rock1k: 480,690 facet pairs, about 30 MiB; with 12 MiB free the message names a span."""
+    import psutil
+
+    Mem = collections.namedtuple("Mem", "available total")
+    monkeypatch.setattr(psutil, "virtual_memory", lambda: Mem(available=12 * 2**20, total=2**30))
+    with pytest.raises(ResourceError) as info:
+        ObjectModel.from_mesh(objects.load("rock1k"), patch_tol_deg=None)
+    message = str(info.value)
+    assert message.startswith("the pair table for 980 facets (480,690 facet pairs, 0 patch pairs) needs about")
+    assert "GiB, but only 0.0117 GiB is available; decimate the mesh or set --max-span " in message, message
+    span = float(message.rsplit(" ", 1)[1])
+    monkeypatch.undo()
+    model = ObjectModel.from_mesh(objects.load("rock1k"), patch_tol_deg=None, max_span=span)
+    assert estimate_bytes(len(model.features.k)) <= 0.8 * 12 * 2**20
+
+
 def test_memory_estimate_covers_the_stored_table(rock_model):
     pairs = len(rock_model.features.k)
     assert estimate_bytes(0) == 0
@@ -404,9 +421,12 @@ def sample_pairs(model, rng, n_global, n_local):
     return np.concatenate([k, kl[0]]), np.concatenate([l, kl[1]])
 
 
+@pytest.mark.parametrize("source", ["built", "loaded"])
 @pytest.mark.parametrize("name", ["banana", "rock", "carton"])
-def test_sampled_contact_pairs_lie_inside_stored_bounds(models, name):
-    model = models[name]
+def test_sampled_contact_pairs_lie_inside_stored_bounds(models, name, source, tmp_path):
+    """Also after a save/load round trip: the file leaves out the vertex-only Δmin and the
+    direction intervals, and load recomputes them."""
+    model = models[name] if source == "built" else ObjectModel.load(models[name].save(tmp_path / "m.npz"))
     rng = np.random.default_rng(20030)
     f = model.features
     idx = feature_lookup(model)
