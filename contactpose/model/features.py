@@ -21,19 +21,16 @@ intervals are cheap and exact to recompute: model files leave them out, and
 
 from __future__ import annotations
 
-import sys
 from dataclasses import dataclass
 
 import numba
 import numpy as np
-from tqdm.auto import tqdm
 
 from contactpose.geometry.kernels import _vertex_minmax, triangle_pair_bounds, triangle_pair_vertex_bounds
+from contactpose.progress import progress_bar
 
 #: Number of facet pairs computed per chunk; bounds the temporary memory.
 CHUNK_PAIRS = 2_000_000
-#: Models with more pairs than this show a progress bar on a terminal.
-PROGRESS_MIN_PAIRS = 5_000_000
 #: Rows of a NearPairs sample: count estimates from this many rows are within about 5 %
 #: on meshes of even density, and cost at most this many KD-tree ball queries.
 SAMPLE_ROWS = 512
@@ -222,18 +219,15 @@ def pair_features(triangles, planes, *, bounds="exact", progress=None, max_span=
 
     triangles : (m, 3, 3) float; planes : FacetPlanes; bounds : "exact" | "paper";
     max_span : keep only pairs with Δmin <= max_span (None: all pairs);
-    progress : None shows a bar on a terminal for large models.
+    progress : None shows a bar on a terminal once the work has taken a second (progress.progress_bar).
     """
     valid_idx = np.flatnonzero(planes.valid)
     v = len(valid_idx)
     near = None if max_span is None else NearPairs.of_facets(triangles, valid_idx, max_span)
-    total = v * (v + 1) // 2
-    if progress is None:
-        progress = total >= PROGRESS_MIN_PAIRS and sys.stderr.isatty()
-    # rows of the upper triangle; with a span, rows hold about total/v candidates each
+    # rows of the upper triangle; with a span, rows hold fewer candidates each
     chunks = row_chunks(v - np.arange(v), CHUNK_PAIRS if near is None else CHUNK_PAIRS * 4)
     parts = []
-    with tqdm(total=v, unit="facet", disable=not progress, desc="pair features") as bar:
+    with progress_bar(total=v, desc="pair features", unit="facet", show=progress) as bar:
         for start, stop in chunks:
             k, l = unordered_pairs(valid_idx, start, stop) if near is None else near.rows(start, stop)
             part = _chunk_features(triangles, planes.normals, k, l, bounds)

@@ -214,6 +214,17 @@ def merged_mesh(vertices, faces):
     return merged
 
 
+def edge_uses(merged):
+    """(E,) int: how many faces use each distinct edge of a vertex-merged mesh (zero-length
+    edges left out); an edge used by more than two faces is non-manifold."""
+    edges = np.asarray(merged.edges_sorted)
+    edges = edges[edges[:, 0] != edges[:, 1]]
+    if len(edges) == 0:
+        return np.zeros(0, dtype=np.int64)
+    _, inverse = trimesh.grouping.unique_rows(edges)
+    return np.bincount(inverse)
+
+
 def winding_report(merged):
     """Check face winding of a vertex-merged mesh. A message if normals look inward or
     inconsistent, else None."""
@@ -661,7 +672,13 @@ def _report_degenerate(planes):
 
 
 def _report_winding(merged):
-    """Warn about inward or inconsistent winding. merged : the vertex-merged mesh."""
+    """Warn about inward or inconsistent winding and non-manifold edges. merged : the
+    vertex-merged mesh."""
     problem = winding_report(merged)
     if problem:
         warnings.warn(f"{problem}; contact normals will not match (try `--fix-normals`)", stacklevel=3)
+    shared = int(np.count_nonzero(edge_uses(merged) > 2))
+    if shared:
+        warnings.warn(f"mesh has {shared} non-manifold edges (each shared by more than two facets): the pair "
+                      "bounds are per triangle and stay exact, but the winding and inside checks skip those "
+                      "edges; repair the mesh if contact normals look wrong there", stacklevel=3)

@@ -15,16 +15,15 @@ each contact takes the member facet nearest to it (research/design.md).
 
 from __future__ import annotations
 
-import sys
 from dataclasses import dataclass
 
 import numba
 import numpy as np
-from tqdm.auto import tqdm
 
 from contactpose.geometry.kernels import _t, _triangle_triangle_d2, point_triangle_dist2
 from contactpose.io.modelfile import STORED_PATCHES, check_arrays, check_pointers
 from contactpose.model.features import NearPairs, PairFeatures, round_down32, round_up32
+from contactpose.progress import progress_bar
 
 #: Normals closer than this (radians) count as exactly parallel for tol_deg = 0.
 COPLANAR_ANGLE = 1e-9
@@ -356,7 +355,7 @@ class PatchPairs:
     def features(self, progress=None):
         """PairFeatures over patch pairs (P <= Q), each interval containing the union of its
         member facet pairs' (Δmin within DMIN_GAP_REL · diameter below exact, never above).
-        progress : tqdm bar (None: on a terminal for large work)."""
+        progress : tqdm bar (None: on a terminal once the work has taken a second)."""
         lay, a, b = self.layout, self.a, self.b
         work = lay.work(a, b)
         total = int(work.sum())
@@ -364,9 +363,7 @@ class PatchPairs:
         cuts = np.searchsorted(np.cumsum(work[order]), np.arange(CHUNK_WORK, total, CHUNK_WORK))
         del work
         out = _PatchPairOutput(len(a))
-        if progress is None:
-            progress = total >= 10 * CHUNK_WORK and sys.stderr.isatty()
-        with tqdm(total=len(a), unit="patch pair", disable=not progress, desc="patch pairs") as bar:
+        with progress_bar(total=len(a), desc="patch pairs", unit="patch pair", show=progress) as bar:
             for idx in np.split(order, cuts):
                 raw = np.empty((len(idx), 8))
                 _patch_pair_kernel(a[idx], b[idx], lay.mem_ptr, lay.mem, lay.grp_ptr, lay.grp_mem, lay.grp_centre,

@@ -22,6 +22,7 @@ import numpy as np
 import trimesh
 
 from contactpose.errors import ContactPoseError, MeshError
+from contactpose.model.object_model import edge_uses
 
 PREFIX = "ycb:"
 
@@ -262,7 +263,7 @@ def mesh_defects(mesh: trimesh.Trimesh, *, merge: bool = True) -> dict:
     Without merging, an STL triangle soup has only boundary edges.
     """
     m = _merged(mesh) if merge else mesh
-    uses = _edge_uses(np.asarray(m.edges_sorted))
+    uses = edge_uses(m)
     return {
         "faces": int(len(m.faces)),
         "vertices": int(len(m.vertices)),
@@ -280,15 +281,6 @@ def _merged(mesh: trimesh.Trimesh) -> trimesh.Trimesh:
     merged = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
     merged.merge_vertices()
     return merged
-
-
-def _edge_uses(edges_sorted: np.ndarray) -> np.ndarray:
-    """Number of faces using each distinct edge, zero-length edges left out."""
-    edges = edges_sorted[edges_sorted[:, 0] != edges_sorted[:, 1]]
-    if len(edges) == 0:
-        return np.zeros(0, dtype=np.int64)
-    _, inverse = trimesh.grouping.unique_rows(edges)
-    return np.bincount(inverse)
 
 
 def _duplicate_faces(faces: np.ndarray) -> int:

@@ -1,0 +1,89 @@
+"""experiments/realistic_contacts.py: the exact "found" test and the incident facets on a small
+built-in model; the quick run (YCB model builds, minutes) is marked slow."""
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from contactpose import sweep
+from contactpose.geometry import metrics
+from contactpose.geometry.kernels import point_triangle_distance
+from contactpose.model.object_model import ObjectModel, merged_mesh
+from contactpose.sim import fingertip, objects
+from contactpose.sim import grasps as simulate
+
+EXPERIMENTS = Path(__file__).resolve().parent.parent / "experiments"
+sys.path.insert(0, str(EXPERIMENTS))
+import run_all  # noqa: E402
+
+rc = run_all.load("realistic_contacts")
+
+
+def small_setup(name="banana"):
+    model = ObjectModel.from_mesh(objects.load(name))
+    mesh = merged_mesh(model.vertices, model.faces)
+    p = model.surface_points
+    w, V = np.linalg.eigh(np.cov(p.T, bias=True))
+    return rc.Setup(model, np.asarray(mesh.vertices), np.asarray(mesh.faces), None, None, p.mean(axis=0),
+                    V * np.sqrt(np.maximum(w, 0.0)), np.arange(model.num_facets))
+
+
+def test_embedding_distance_is_the_rms_displacement():
+    s = small_setup()
+    rng = np.random.default_rng(0)
+    poses = np.stack([simulate.random_pose(rng, max_translation=0.05) for _ in range(20)])
+    p = s.model.surface_points
+    want = metrics.rms_displacement(poses, poses[0], p.mean(axis=0), p.T @ p / len(p))
+    got = np.linalg.norm(rc.embed(s, poses) - rc.embed(s, poses[0]), axis=1)
+    assert np.allclose(got, want, atol=1e-12)
+
+
+def test_any_within_equals_adds_pose_by_pose():
+    s = small_setup()
+    rng = np.random.default_rng(1)
+    truth = simulate.random_pose(rng, max_translation=0.05)
+    D = s.model.diameter
+    for k in range(30):
+        # poses scattered around the truth, some within the limit, most not
+        spread = rng.uniform(0.01, 0.5)
+        poses = np.stack([truth @ simulate.pose_from(rng.normal(0, spread, 3), rng.normal(0, 0.2 * spread * D, 3))
+                          for _ in range(200)])
+        for frac in (0.02, 0.05, 0.1):
+            limit = frac * D
+            brute = any(metrics.adds(T, truth, s.model.surface_points, s.model.surface_tree) < limit for T in poses)
+            found, _, exact = rc.any_within(s, poses, truth, limit, max_anchors=10_000)
+            assert exact and found == brute, (k, frac)
+
+
+def test_incident_facets_of_edges_and_vertices():
+    s = small_setup("box")
+    rng = np.random.default_rng(2)
+    got = fingertip.approach(s.vertices, s.faces, rng, 400, 0.2 * s.model.diameter, cone_deg=60.0)
+    kinds = set()
+    for f, p, k in zip(got.facets, got.points, got.features):
+        inc = rc.incident_facets(s, f, p, str(k))
+        assert f in inc
+        if k == fingertip.FACE:
+            assert list(inc) == [f]
+        else:  # two or more triangles, each holding the touched point
+            d = point_triangle_distance(np.repeat(p[None], len(inc), axis=0), s.model.triangles[inc])
+            assert len(inc) >= 2 and d.max() < 1e-9 * s.model.diameter, (k, d)
+        kinds.add(str(k))
+    assert {"edge", "vertex"} <= kinds
+
+
+@pytest.mark.slow
+def test_quick_run_writes_every_output(tmp_path):
+    assert rc.main(["--quick", "--out", str(tmp_path)]) == 0
+    out = tmp_path / "realistic_contacts"
+    for f in ("grasps.csv", "timings.csv", "summary.csv", "summary.md", "models.csv", "config.json", "run.json",
+              "realistic_contacts.png", "realistic_contacts.pdf"):
+        assert (out / f).stat().st_size > 0, f
+    rows = sweep.read_rows(out / "grasps.csv")
+    assert {r["method"] for r in rows} == {"fast", "paper", "icp-multistart", "scaling-series"}
+    assert not any(k.startswith("time_") for k in rows[0])
+    (out / "realistic_contacts.png").unlink()
+    assert rc.main(["--quick", "--plot-only", "--out", str(tmp_path)]) == 0
+    assert (out / "realistic_contacts.png").exists()
