@@ -198,3 +198,16 @@ def test_next_touch_cli(box_model, tmp_path, capsys):
     bad = parser.parse_args(["next-touch", "box", "--contacts", str(path), "--candidates", "0"])
     with pytest.raises(ContactPoseError, match="--candidates"):
         bad.func(bad)
+
+
+def test_next_touch_cli_says_already_determined(tmp_path, capsys):
+    """The banana example has one hypothesis: nothing is left to separate."""
+    from pathlib import Path
+
+    from contactpose.cli import main
+
+    example = Path(__file__).resolve().parents[1] / "examples" / "banana_contacts.json"
+    out = tmp_path / "touch.json"
+    assert main(["next-touch", "banana", "--contacts", str(example), "--candidates", "20", "-o", str(out)]) == 0
+    assert "already determined" in capsys.readouterr().out
+    assert json.loads(out.read_text())["touch"]["determined"] is True
