@@ -30,6 +30,7 @@ EXPERIMENTS = {
     "fingers_sweep": (2.5, 0.4),
     "scaling": (8.0, 0.5),
     "baselines": (9.0, 0.6),
+    "realistic_contacts": (450.0, 9.0),
 }
 
 

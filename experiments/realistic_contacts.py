@@ -1,0 +1,745 @@
+"""Realistic contacts on the YCB benchmark objects: rounded fingertips, sensor noise, mm and degrees.
+
+A grasp: a uniformly random object pose (``simulate.random_pose``: rotation uniform, translation
+within ±``translation_frac`` diameter), then 4 fingertips from ``fingertip.approach`` on the
+object-frame mesh (mode "cone", 30°: each ball of radius r aims at an area-uniform surface point
+along a direction within 30° of the inward facet normal and stops at its first touch, which may
+be a face, an edge or a vertex). A finger that misses is drawn again (``redraws`` counts them).
+r = 0, 1, 2 and 5 % of the model's diameter. Contacts to the world: points R p + t, finger
+normals −(R n) (n: from the contact toward the ball centre, outward); then Gaussian sensor
+noise, σ_x = 0.25 % of the diameter per axis and σ_n = 1° (``perturb_normals``); ``localize``
+is told that noise. One sweep cell is one grasp; its generator makes every draw, in this
+order: pose, fingertips (and redraws), position noise, normal noise, then the baselines'
+own draws. The cells of one object share their stream across radii (``seed_axes``): grasp k
+has the same pose and the same aims at every radius.
+
+Methods on the same grasps: ``fast`` (the default method) on every grasp; ``paper``
+(``method="paper"``, LM from the identity) on the first ``paper_grasps`` grasps per object and
+radius, counted as run only when it finishes within ``paper_time_limit`` seconds (its status is
+not ``time_limit``), or "not run" when the model has no facet table; ``icp-multistart`` (32
+random starts) and ``scaling-series`` (2000 particles) from contactpose/baselines.py with their
+default budgets and ICP's default pad radius and correspondence distance (not tuned per object
+as experiments/baselines.py does), on the first ``baseline_grasps`` grasps.
+
+Per grasp and method: found (some returned hypothesis places the surface within ADD-S
+``found_adds_frac`` = 5 % of the diameter; exact over all hypotheses, see :func:`any_within`),
+top-1 by ADD-S (< ``top1_adds_frac`` = 10 %) and strict (``metrics.pose_success``: rotation < 5°,
+translation < 5 % of the diameter), the best pose's rotation and translation errors and ADD-S
+(mm), status, hypothesis count, online time (``result.timing["total"]``; wall time for the
+baselines). For ``fast`` also where the true assignment is lost (``truth_stage``, the first that
+applies): ``table`` (some finger pair's true facet pair is not in S_ij), ``tree`` (every pair is
+there, the tuple is not joined), ``fit`` (the tuple is found but no pose near its closed form fits
+within noise), ``ranking`` (it fits, another tuple is first) or ``first`` (it is ranked first). The
+true facet of a contact is the triangle it touched, or on an edge or a vertex any triangle
+incident to it (``pairs_present_touched`` counts the pairs with the touched triangles only).
+
+Models: each object's model is built once, in a child process that records its build time and
+peak RSS, and kept as .npz (with the baselines' surface samples) under ``model_cache``
+(results/realistic_contacts/_scratch/models/); the workers load it. A model with its facet table
+is 5.4 GB on disk, so with ``keep_models`` false (full run) each is deleted once its object's
+grasps are done. Objects run one after the other, each its own sweep in
+_scratch/sweeps/<object>/ (a rerun resumes there; ``--fresh`` starts afresh), and the results
+are published after each object.
+
+Writes results/realistic_contacts/: grasps.csv (one row per grasp and method; timings.csv the
+same with the ``time_*`` columns), models.csv (build time, peak RSS, size per object),
+summary.csv (per object × radius × method, all grasps and the face-only / edge-vertex splits),
+summary.md, config.json, run.json and realistic_contacts.png/pdf (drawn from the CSVs alone)::
+
+    .venv/bin/python experiments/realistic_contacts.py               # 12 objects x 4 radii x 100 grasps
+    .venv/bin/python experiments/realistic_contacts.py --quick       # 2 objects x 2 radii x 3 grasps
+    .venv/bin/python experiments/realistic_contacts.py --plot-only   # summary and figures from the CSVs
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+import logging
+import resource
+import subprocess
+import sys
+import time
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from contactpose import baselines as bl
+from contactpose import sweep
+from contactpose.contacts import Contacts
+from contactpose.geometry import metrics
+from contactpose.geometry.raycast import raycaster
+from contactpose.geometry.sampling import perturb_normals
+from contactpose.io.modelfile import FORMAT_VERSION
+from contactpose.localize import find_pairs, localize
+from contactpose.model.object_model import ObjectModel, merged_mesh
+from contactpose.model.table import estimate_bytes
+from contactpose.scoring.infacet import within_noise
+from contactpose.sim import fingertip, objects, ycb
+from contactpose.sim import grasps as simulate
+from contactpose.types import fit_threshold
+
+NAME = "realistic_contacts"
+log = logging.getLogger(NAME)
+METHODS = ("fast", "paper", "icp-multistart", "scaling-series")
+STATUSES = ("ok", "poor_fit", "no_hypothesis", "underdetermined", "ambiguous", "time_limit")
+#: Where the true assignment is lost, in pipeline order; "first": it is ranked first.
+STAGES = ("table", "tree", "fit", "ranking", "first")
+STAGE_TEXT = {"table": "table: a true pair not in S_ij", "tree": "tree: pairs there, tuple not joined",
+              "fit": "fit test: tuple found, judged not to fit", "ranking": "ranking: tuple fits, another first",
+              "first": "true tuple first, its pose off"}
+SPLITS = ("all", "face-only", "edge/vertex")
+EDGES = ((0, 1), (1, 2), (2, 0))
+GiB = 2.0**30
+
+
+# --------------------------------------------------------------------------- models
+
+def stem(name):
+    return ycb.resolve(name)[len(ycb.PREFIX):]
+
+
+def model_files(cache, name):
+    s = stem(name)
+    return {"model": Path(cache) / f"{s}.npz", "surface": Path(cache) / f"{s}_surface.npz",
+            "meta": Path(cache) / f"{s}.json"}
+
+
+def build_model_files(name, cache):
+    """Build an object's model, save it, sample the baselines' surface, save it, and write the
+    meta json with the build time and the peak RSS of this process after the build. Runs in a
+    child process of its own (:func:`prepare`), so the peak is this object's."""
+    files = model_files(cache, name)
+    start = time.perf_counter()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        model = ObjectModel.from_mesh(ycb.load(name))
+    build_s = time.perf_counter() - start
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024  # KiB on Linux
+    model.save(files["model"])
+    v = int(model.planes.valid.sum())
+    meta = {"object": name, "facets": model.num_facets, "valid_facets": v, "diameter_m": model.diameter,
+            "facet_table": model.table is not None, "patches": None if model.patches is None else model.patches.count,
+            "patch_table": model.patch_table is not None, "ordered_pairs": int(model.num_pairs),
+            "facet_table_gib": estimate_bytes(v * (v + 1) // 2) / GiB, "build_s": build_s,
+            "build_stage_s": model.build_seconds, "build_peak_rss_gib": peak / GiB,
+            "model_file_gib": files["model"].stat().st_size / GiB, "warnings": [str(w.message) for w in caught],
+            "library": library_version()}
+    model.table = None  # saved; the surface samples need the facets only, and the memory
+    start = time.perf_counter()
+    surface = bl.sample_surface(model)
+    meta["surface_s"] = time.perf_counter() - start
+    meta["surface_neighbours"] = int(surface.neighbours.shape[1])
+    np.savez(files["surface"], points=surface.points, normals=surface.normals, facets=surface.facets,
+             center=surface.center, radius=surface.radius, neighbours=surface.neighbours)
+    files["meta"].write_text(json.dumps(meta, indent=1) + "\n")
+
+
+def library_version():
+    """git HEAD of the repository and whether contactpose/ differs from it (other engineers edit it)."""
+    def git(*cmd):
+        out = subprocess.run(["git", *cmd], cwd=sweep.ROOT, capture_output=True, text=True, check=False)
+        return out.stdout.strip()
+    return {"commit": git("rev-parse", "HEAD"), "contactpose_dirty": bool(git("status", "--porcelain", "contactpose"))}
+
+
+def prepare(name, cache):
+    """The meta dict of an object's cached model, building it first (in a child process) if
+    it is not there."""
+    files = model_files(cache, name)
+    if all(f.exists() for f in files.values()) and current(files["model"]):
+        return json.loads(files["meta"].read_text())
+    Path(cache).mkdir(parents=True, exist_ok=True)
+    log.info("%s: building the model (one at a time: a 16,384-facet build peaks near 13 GiB)", name)
+    code = ("import importlib.util, sys; spec = importlib.util.spec_from_file_location('realistic_build', sys.argv[1]); "
+            "m = sys.modules['realistic_build'] = importlib.util.module_from_spec(spec); spec.loader.exec_module(m); "
+            "m.build_model_files(*sys.argv[2:])")
+    start = time.perf_counter()
+    subprocess.run([sys.executable, "-c", code, str(Path(__file__).resolve()), name, str(cache)], check=True)
+    meta = json.loads(files["meta"].read_text())
+    log.info("%s: built in %.0f s (peak RSS %.1f GiB, file %.1f GiB), surface samples %.0f s; %.0f s in all",
+             name, meta["build_s"], meta["build_peak_rss_gib"], meta["model_file_gib"], meta["surface_s"],
+             time.perf_counter() - start)
+    return meta
+
+
+def current(path):
+    """Whether a model file has this library's format version (others may change it meanwhile)."""
+    with np.load(path) as data:
+        return int(data["format_version"]) == FORMAT_VERSION
+
+
+@dataclass
+class Setup:
+    """What a worker holds per object: model, vertex-merged mesh, baselines' surface and ICP
+    target, and the 12-D embedding of poses for ADD bounds (:func:`embed`)."""
+
+    model: ObjectModel
+    vertices: np.ndarray
+    faces: np.ndarray
+    surface: bl.Surface
+    target: object
+    mean: np.ndarray
+    root_cov: np.ndarray
+    labels: np.ndarray
+
+
+def setup(name, cache, cfg):
+    def load():
+        files = model_files(cache, name)
+        model = ObjectModel.load(files["model"])
+        mesh = merged_mesh(model.vertices, model.faces)
+        vertices, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+        if not np.allclose(vertices[faces], model.triangles):
+            raise RuntimeError(f"{name}: merging the vertices changed the face order")
+        s = np.load(files["surface"])
+        surface = bl.Surface(s["points"], s["normals"], s["facets"], s["center"], float(s["radius"]), s["neighbours"],
+                             raycaster(model))
+        p = model.surface_points
+        w, V = np.linalg.eigh(np.cov(p.T, bias=True))
+        labels = model.patches.labels if model.patch_table is not None else np.arange(model.num_facets)
+        warm_up()
+        return Setup(model, vertices, faces, surface, bl.icp_target(surface, cfg["icp_target_points"]), p.mean(axis=0),
+                     V * np.sqrt(np.maximum(w, 0.0)), labels)
+    return sweep.cached((NAME, name, str(cache)), load)
+
+
+def warm_up():
+    """One untimed call of everything timed, on the 53-facet banana (numba and Open3D load lazily)."""
+    model = ObjectModel.from_mesh(objects.load("banana"))
+    rng = np.random.default_rng(0)
+    g = simulate.grasp(model, rng, n=4, position_noise=0.0005, normal_noise_deg=1.0)
+    for method in ("fast", "paper"):
+        localize(model, g.contacts, position_noise=0.0005, normal_noise_deg=1.0, method=method)
+    surface = bl.sample_surface(model)
+    noise = dict(position_noise=0.0005, normal_noise_deg=1.0)
+    bl.icp_multistart(model, surface, bl.icp_target(surface, 500), g.contacts, rng, starts=2, **noise)
+    bl.scaling_series(model, surface, g.contacts, rng, initial=50, per_ball=4, max_particles=50, **noise)
+    fingertip.approach(model.vertices, model.faces, rng, 4, 0.005)
+
+
+# --------------------------------------------------------------------------- the grasp
+
+def fingertips(s, rng, radius, cfg):
+    """4 fingertip contacts on the object-frame mesh; a finger that misses is drawn again.
+    -> (points, outward normals, facets, features, redraws)"""
+    n = cfg["fingers"]
+    kw = dict(cone_deg=cfg["cone_deg"], mode=cfg["mode"])
+    got = fingertip.approach(s.vertices, s.faces, rng, n, radius, **kw)
+    points, normals, facets, features = got.points.copy(), got.normals.copy(), got.facets.copy(), got.features.copy()
+    missing, redraws = np.flatnonzero(~got.hit), 0
+    while len(missing):
+        if redraws >= cfg["max_redraws"]:
+            raise RuntimeError(f"{redraws} fingertip redraws and still {len(missing)} misses")
+        again = fingertip.approach(s.vertices, s.faces, rng, len(missing), radius, **kw)
+        redraws += len(missing)
+        hit = missing[again.hit]
+        points[hit], normals[hit] = again.points[again.hit], again.normals[again.hit]
+        facets[hit], features[hit] = again.facets[again.hit], again.features[again.hit]
+        missing = missing[~again.hit]
+    return points, normals, facets, features, redraws
+
+
+def incident_facets(s, facet, point, feature):
+    """The facets a contact may rightly be assigned to: its triangle on a face; on an edge the
+    triangles sharing that edge; on a vertex the triangles around it (vertex-merged mesh)."""
+    ids = s.faces[facet]
+    tri = s.vertices[ids]
+    if feature == fingertip.VERTEX:
+        v = ids[np.argmin(np.linalg.norm(tri - point, axis=1))]
+        around = np.flatnonzero((s.faces == v).any(axis=1))
+    elif feature == fingertip.EDGE:
+        dist = []
+        for i, j in EDGES:
+            e = tri[j] - tri[i]
+            t = np.clip(np.dot(point - tri[i], e) / np.dot(e, e), 0.0, 1.0)
+            dist.append(np.linalg.norm(point - tri[i] - t * e))
+        i, j = EDGES[int(np.argmin(dist))]
+        around = np.flatnonzero((s.faces == ids[i]).any(axis=1) & (s.faces == ids[j]).any(axis=1))
+    else:
+        around = np.zeros(0, dtype=np.int64)
+    return np.union1d(around, [facet])
+
+
+def embed(s, poses):
+    """Poses (..., 4, 4) as 12-vectors whose Euclidean distance is the RMS displacement of the
+    model's surface points between the poses (metrics.rms_displacement): [R L, R μ + t], with
+    μ the points' mean and L Lᵀ their covariance. RMS ≥ ADD ≥ ADD-S."""
+    R = poses[..., :3, :3]
+    RL = np.einsum("...ij,jk->...ik", R, s.root_cov).reshape(*poses.shape[:-2], 9)
+    return np.concatenate([RL, np.einsum("...ij,j->...i", R, s.mean) + poses[..., :3, 3]], axis=-1)
+
+
+def adds(s, pose, truth):
+    return metrics.adds(pose, truth, s.model.surface_points, s.model.surface_tree)
+
+
+def any_within(s, poses, truth, limit, max_anchors):
+    """Whether some pose has ADD-S to truth below limit, exactly, without an ADD-S per pose:
+    a pose within RMS `limit` of the truth is one (ADD-S ≤ ADD ≤ RMS); else anchors, nearest
+    the truth first, each get their ADD-S a, which decides every pose within RMS a − limit of
+    them (|ADD-S(h) − ADD-S(anchor)| ≤ ADD(h, anchor) ≤ RMS). -> (found, anchors, exact)"""
+    if len(poses) == 0:
+        return False, 0, True
+    v = embed(s, poses)
+    near = np.linalg.norm(v - embed(s, truth), axis=1)
+    if near.min() < limit:
+        return True, 0, True
+    tree = cKDTree(v)
+    open_ = np.ones(len(v), dtype=bool)
+    order = np.argsort(near)
+    pos = 0
+    for anchors in range(1, max_anchors + 1):
+        while pos < len(order) and not open_[order[pos]]:
+            pos += 1
+        if pos == len(order):
+            return False, anchors - 1, True
+        a = order[pos]
+        value = adds(s, poses[a], truth)
+        if value < limit:
+            return True, anchors, True
+        open_[a] = False
+        open_[tree.query_ball_point(v[a], value - limit)] = False
+    return False, max_anchors, not open_.any()
+
+
+def truth_columns(s, contacts, result, true_sets, touched, cfg):
+    """Where the true assignment is lost (see the module docstring) and what shows it."""
+    labels = s.labels
+    S = find_pairs(s.model, contacts, result.tolerance)
+    keys = [np.unique(labels[c]) for c in true_sets]
+    present = present_touched = 0
+    for (i, j), pairs in S.items():
+        a, b = np.repeat(keys[i], len(keys[j])), np.tile(keys[j], len(keys[i]))
+        present += bool(pairs.contains(a, b).any())
+        present_touched += bool(pairs.contains(labels[touched[[i]]], labels[touched[[j]]])[0])
+    arrays = result.hypotheses.arrays
+    facets = arrays.facets
+    match = np.ones(len(facets), dtype=bool)
+    for k, key in enumerate(keys):
+        match &= np.isin(labels[np.maximum(facets[:, k], 0)], key) & (facets[:, k] >= 0)
+    ranks = np.flatnonzero(match)
+    fits = bool(len(ranks)) and bool(within_noise(s.model, contacts, arrays.take(ranks[:cfg["truth_fit_checks"]]),
+                                                  result.tolerance, fit_threshold(contacts.n)).any())
+    if len(ranks):
+        stage = "first" if ranks[0] == 0 else ("ranking" if fits else "fit")
+    else:
+        stage = "table" if present < len(S) else "tree"
+    return {"pairs_present": present, "pairs_present_touched": present_touched, "true_tuples": len(ranks),
+            "true_rank": int(ranks[0]) if len(ranks) else None, "true_fits": fits, "truth_stage": stage}
+
+
+def score(s, poses, truth, cfg, max_anchors=1):
+    """Accuracy columns: found (any of poses), and of poses[0] (the best) top-1 and errors."""
+    D = s.model.diameter
+    if len(poses) == 0:
+        return {"found": False, "found_exact": True, "anchors": 0, "top1_adds": False, "top1_strict": False,
+                "rot_err_deg": None, "trans_err_mm": None, "adds_mm": None}
+    found, anchors, exact = any_within(s, poses, truth, cfg["found_adds_frac"] * D, max_anchors)
+    best = poses[0]
+    a = adds(s, best, truth)
+    return {"found": found, "found_exact": exact, "anchors": anchors, "top1_adds": bool(a < cfg["top1_adds_frac"] * D),
+            "top1_strict": bool(metrics.pose_success(best, truth, D)),
+            "rot_err_deg": float(metrics.rotation_error_deg(best, truth)),
+            "trans_err_mm": 1e3 * float(metrics.translation_error(best, truth)), "adds_mm": 1e3 * a}
+
+
+def ours(s, contacts, truth, noise, cfg, **options):
+    """localize, scored; warnings (the explosion estimate) recorded, not printed."""
+    start = time.perf_counter()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        r = localize(s.model, contacts, **noise, **options)
+    wall = time.perf_counter() - start
+    row = {"ran": True, "note": "", "status": r.status, "num_hypotheses": r.num_hypotheses, "classes": len(r.classes),
+           "best_underdetermined": bool(r.best is not None and r.best.underdetermined),
+           "widened": "widened" in r.hint, "warned_explosion": any("explode" in str(w.message) for w in caught),
+           "time_online_ms": 1e3 * r.timing["total"], "time_wall_ms": 1e3 * wall}
+    row.update(score(s, r.hypotheses.arrays.poses, truth, cfg, cfg["max_anchors"]))
+    return r, row
+
+
+def task(settings, rng, *, cfg, cache):
+    name, frac, seed = settings["object"], settings["radius_frac"], settings["seed"]
+    s = setup(name, cache, cfg)
+    model = s.model
+    D = model.diameter
+    pose = simulate.random_pose(rng, max_translation=cfg["translation_frac"] * D)
+    points, normals, facets, features, redraws = fingertips(s, rng, frac * D, cfg)
+    R, t = pose[:3, :3], pose[:3, 3]
+    sx = cfg["position_noise_frac"] * D
+    world = points @ R.T + t + rng.normal(0.0, sx, points.shape)
+    finger = perturb_normals(-(normals @ R.T), np.radians(cfg["normal_noise_deg"]), rng)
+    contacts = Contacts(world, finger_normals=finger)
+    noise = dict(position_noise=sx, normal_noise_deg=cfg["normal_noise_deg"])
+    kinds = [str(f) for f in features]
+    grasp = {"symmetry": ycb.symmetry(name) or "none", "diameter_mm": 1e3 * D, "radius_mm": 1e3 * frac * D,
+             "features": " ".join(kinds), "n_face": kinds.count(fingertip.FACE), "n_edge": kinds.count(fingertip.EDGE),
+             "n_vertex": kinds.count(fingertip.VERTEX), "face_only": all(k == fingertip.FACE for k in kinds),
+             "redraws": redraws, "spread_mm": 1e3 * contacts.spread}
+    rows = []
+    # the default method, with where the truth is lost
+    r, row = ours(s, contacts, pose, noise, cfg)
+    true_sets = [incident_facets(s, f, p, k) for f, p, k in zip(facets, points, kinds)]
+    row.update(truth_columns(s, contacts, r, true_sets, facets, cfg))
+    rows.append({"method": "fast", **grasp, **row})
+    # the paper's method, within its time cap
+    if seed < cfg["paper_grasps"]:
+        if model.table is None:
+            v = int(model.planes.valid.sum())
+            note = (f"not run: needs the facet table of {model.num_facets:,} facets "
+                    f"({estimate_bytes(v * (v + 1) // 2) / GiB:.1f} GiB)")
+            rows.append({"method": "paper", **grasp, "ran": False, "note": note})
+        else:
+            r, row = ours(s, contacts, pose, noise, cfg, method="paper", time_limit=cfg["paper_time_limit"])
+            if r.status == "time_limit":
+                row = {"ran": False, "note": f"not finished within {cfg['paper_time_limit']:g} s",
+                       "status": r.status, "num_hypotheses": r.num_hypotheses, "time_wall_ms": row["time_wall_ms"]}
+            rows.append({"method": "paper", **grasp, **row})
+    # the baselines, default budgets
+    if seed < cfg["baseline_grasps"]:
+        for method, run in (("icp-multistart", lambda: bl.icp_multistart(model, s.surface, s.target, contacts, rng,
+                                                                           **noise)),
+                            ("scaling-series", lambda: bl.scaling_series(model, s.surface, contacts, rng, **noise))):
+            start = time.perf_counter()
+            b = run()
+            row = {"ran": True, "note": "", "cost": b.cost, "evaluations": b.evaluations,
+                   "time_online_ms": 1e3 * (time.perf_counter() - start)}
+            row["time_wall_ms"] = row["time_online_ms"]
+            row.update(score(s, b.pose[None], pose, cfg))
+            rows.append({"method": method, **grasp, **row})
+    return rows
+
+
+def make_sweep(cfg, name, cache):
+    fixed = {k: v for k, v in cfg.items() if k not in ("objects", "estimate", "keep_models", "workers")}
+    return sweep.Sweep(f"{NAME}:{stem(name)}", functools.partial(task, cfg=cfg, cache=str(cache)),
+                       {"object": [name], "radius_frac": cfg["radius_fracs"]}, seeds=cfg["seeds"],
+                       base_seed=cfg["base_seed"], seed_axes=("object",), config=fixed)
+
+
+def finished(sw, stage):
+    """Whether every cell of a sweep already has its rows in stage/ from the same config."""
+    try:
+        old = json.loads((Path(stage) / sweep.CONFIG_JSON).read_text())
+        done = {r[sweep.CELL_COLUMN] for r in sweep.read_rows(Path(stage) / sweep.TIMINGS_CSV)}
+    except (OSError, ValueError):
+        return False
+    record = sw.config_record()
+    same = all(old.get(k) == record[k] for k in ("experiment", "config", "base_seed", "seed_axes"))
+    return same and {c.cell for c in sw.cells()} <= done
+
+
+# --------------------------------------------------------------------------- publishing
+
+def publish(out, cfg, stages, metas, seconds):
+    """grasps.csv / timings.csv (the objects' sweeps concatenated), models.csv, config.json, run.json."""
+    for src, dst in ((sweep.RESULTS_CSV, "grasps.csv"), (sweep.TIMINGS_CSV, "timings.csv")):
+        rows = [r for st in stages if (Path(st) / src).exists() for r in sweep.read_rows(Path(st) / src)]
+        sweep.write_rows(out / dst, rows)
+    sweep.write_rows(out / "models.csv", [{k: v for k, v in m.items() if k not in ("build_stage_s", "warnings",
+                                                                                    "library")}
+                                           | {"commit": m["library"]["commit"][:12]} for m in metas])
+    (out / "config.json").write_text(json.dumps(cfg, indent=1) + "\n")
+    (out / "run.json").write_text(json.dumps({"experiment": NAME, "seconds": round(seconds, 1),
+                                              "objects_done": [m["object"] for m in metas],
+                                              "workers": cfg.get("workers"), "library": library_version(),
+                                              "machine": sweep.machine_description()}, indent=1) + "\n")
+
+
+def expected_minutes(cfg, cache):
+    e = cfg["estimate"]
+    builds = sum(not (model_files(cache, n)["model"].exists() and current(model_files(cache, n)["model"]))
+                 for n in cfg["objects"])
+    cells = len(cfg["objects"]) * len(cfg["radius_fracs"])
+    work = cells * (cfg["seeds"] * (e["fast_seconds"] + e["check_seconds"])
+                    + min(cfg["seeds"], cfg["baseline_grasps"]) * e["baseline_seconds"]
+                    + min(cfg["seeds"], cfg["paper_grasps"]) * e["paper_seconds"])
+    return builds * e["build_minutes"], work / 60.0 / max(cfg.get("workers") or 1, 1), builds
+
+
+# --------------------------------------------------------------------------- summary
+
+def pct(x, q):
+    x = x[np.isfinite(x)]
+    return float(np.percentile(x, q)) if len(x) else np.nan
+
+
+def summarize(c):
+    """summary.csv rows: object × radius × method × split (all, face-only, edge/vertex)."""
+    rows = []
+    for obj in dict.fromkeys(c["object"]):
+        for frac in sorted(set(c["radius_frac"][c["object"] == obj])):
+            for method in METHODS:
+                cell = (c["object"] == obj) & (c["radius_frac"] == frac) & (c["method"] == method)
+                if not cell.any():
+                    continue
+                for split in SPLITS:
+                    sel = cell & {"all": True, "face-only": c["face_only"] == 1, "edge/vertex": c["face_only"] == 0}[split]
+                    rows.append(summary_row(c, sel, obj, frac, method, split))
+    return rows
+
+
+def summary_row(c, sel, obj, frac, method, split):
+    ran = sel & (c["ran"] == 1)
+    n, k = int(sel.sum()), int(ran.sum())
+    share = (lambda col: float(np.mean(c[col][ran] == 1)) if k else np.nan)
+    row = {"object": obj, "symmetry": c["symmetry"][sel][0] if n else "", "radius_frac": frac,
+           "radius_mm": float(c["radius_mm"][sel][0]) if n else np.nan, "method": method, "split": split,
+           "grasps": n, "ran": k, "found": share("found"), "top1_adds": share("top1_adds"),
+           "top1_strict": share("top1_strict")}
+    for col in ("rot_err_deg", "trans_err_mm", "adds_mm"):
+        row[f"{col}_median"], row[f"{col}_p90"] = pct(c[col][ran], 50), pct(c[col][ran], 90)
+    for st in STATUSES:
+        row[f"status_{st}"] = int(np.sum(c["status"][ran] == st)) if method in ("fast", "paper") else ""
+    row["no_hypothesis"] = float(np.mean(c["num_hypotheses"][ran] == 0)) if k and method in ("fast", "paper") else np.nan
+    row["hypotheses_median"] = pct(c["num_hypotheses"][ran], 50) if method in ("fast", "paper") else np.nan
+    row["online_ms_median"], row["online_ms_p95"] = pct(c["time_online_ms"][ran], 50), pct(c["time_online_ms"][ran], 95)
+    row["redraws"] = int(np.nansum(c["redraws"][sel]))
+    row["found_inexact"] = int(np.sum(c["found_exact"][ran] == 0))
+    if method == "fast":
+        for crit in ("top1_adds", "top1_strict"):
+            fail = ran & (c[crit] == 0)
+            for stage in STAGES:
+                row[f"fail_{crit}_{stage}"] = int(np.sum(c["truth_stage"][fail] == stage))
+        row["pairs_present_median"] = pct(c["pairs_present"][ran], 50)
+    return row
+
+
+def fmt(x, spec=".0f", scale=1.0):
+    return "–" if x == "" or not np.isfinite(float(x)) else format(scale * float(x), spec)
+
+
+def short(name):
+    return stem(name).split("_", 1)[1]
+
+
+def summary_markdown(rows, models, cfg_text):
+    by = {(r["object"], float(r["radius_frac"]), r["method"], r["split"]): r for r in rows}
+    objs = list(dict.fromkeys(r["object"] for r in rows))
+    fracs = sorted({float(r["radius_frac"]) for r in rows})
+    lines = ["# Realistic contacts on YCB objects", "", cfg_text, "",
+             "Default method (`fast`). found: some hypothesis within ADD-S 5 % of the diameter; top-1 ADD-S: the best "
+             "within 10 %; strict: rotation < 5° and translation < 5 % of the diameter. Errors of the best pose "
+             "(median / p90; for symmetric objects the ADD-S in mm is the fair one). no-hyp: no hypothesis. "
+             "face / e-v: top-1 ADD-S of the face-only grasps and of those with an edge or vertex contact (grasps).", "",
+             "| object | sym. | r (% diam.) | grasps | found % | top-1 ADD-S % | top-1 strict % | rot med / p90 (°) | "
+             "trans med / p90 (mm) | ADD-S med / p90 (mm) | no-hyp % | hyp. median | online med / p95 (ms) | "
+             "face (n) / e-v (n) top-1 % |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
+    for obj in objs:
+        for frac in fracs:
+            r = by.get((obj, frac, "fast", "all"))
+            if r is None:
+                continue
+            f, e = by[(obj, frac, "fast", "face-only")], by[(obj, frac, "fast", "edge/vertex")]
+            lines.append(
+                f"| {short(obj)} | {r['symmetry'] if r['symmetry'] != 'none' else ''} | {100 * frac:g} | {r['grasps']} | "
+                f"{fmt(r['found'], '.0f', 100)} | {fmt(r['top1_adds'], '.0f', 100)} | {fmt(r['top1_strict'], '.0f', 100)} | "
+                f"{fmt(r['rot_err_deg_median'], '.1f')} / {fmt(r['rot_err_deg_p90'], '.0f')} | "
+                f"{fmt(r['trans_err_mm_median'], '.1f')} / {fmt(r['trans_err_mm_p90'], '.0f')} | "
+                f"{fmt(r['adds_mm_median'], '.1f')} / {fmt(r['adds_mm_p90'], '.0f')} | "
+                f"{fmt(r['no_hypothesis'], '.0f', 100)} | {fmt(r['hypotheses_median'], '.0f')} | "
+                f"{fmt(r['online_ms_median'], '.0f')} / {fmt(r['online_ms_p95'], '.0f')} | "
+                f"{fmt(f['top1_adds'], '.0f', 100)} ({f['grasps']}) / {fmt(e['top1_adds'], '.0f', 100)} ({e['grasps']}) |")
+    lines += ["", "## All objects, by radius (default method)", "",
+              "| r (% diam.) | grasps | found % | top-1 ADD-S % | top-1 strict % | face-only top-1 % (n) | "
+              "edge/vertex top-1 % (n) | statuses | redraws |", "|---:|---:|---:|---:|---:|---:|---:|---|---:|"]
+    for frac in fracs:
+        tot = pooled(rows, frac, "fast")
+        lines.append(f"| {100 * frac:g} | {tot['all']['n']} | {fmt(tot['all']['found'], '.0f', 100)} | "
+                     f"{fmt(tot['all']['top1_adds'], '.0f', 100)} | {fmt(tot['all']['top1_strict'], '.0f', 100)} | "
+                     f"{fmt(tot['face-only']['top1_adds'], '.0f', 100)} ({tot['face-only']['n']}) | "
+                     f"{fmt(tot['edge/vertex']['top1_adds'], '.0f', 100)} ({tot['edge/vertex']['n']}) | "
+                     + ", ".join(f"{st} {tot['status'][st]}" for st in STATUSES if tot["status"][st]) +
+                     f" | {tot['redraws']} |")
+    lines += ["", "## Where the true assignment is lost (default method, grasps whose top-1 fails)", "",
+              "Stage: the first that loses the true facet tuple (an edge or vertex contact's true facets are all the "
+              "triangles incident to the touched feature).", "",
+              "| r (% diam.) | criterion | failures | " + " | ".join(STAGE_TEXT[s] for s in STAGES) + " |",
+              "|---:|---|---:|" + "---:|" * len(STAGES)]
+    for frac in fracs:
+        for crit in ("top1_adds", "top1_strict"):
+            counts = [sum(int(r[f"fail_{crit}_{st}"]) for r in rows if float(r["radius_frac"]) == frac
+                          and r["method"] == "fast" and r["split"] == "all") for st in STAGES]
+            lines.append(f"| {100 * frac:g} | {'ADD-S 10 %' if crit == 'top1_adds' else 'strict'} | {sum(counts)} | "
+                         + " | ".join(str(x) for x in counts) + " |")
+    lines += ["", "## Methods on the same grasps (all objects)", "",
+              "Baselines and the paper's method run on the first grasps of each object and radius (config "
+              "`baseline_grasps`, `paper_grasps`); `ran` counts the grasps where a method gave an answer "
+              "(the paper's: finished within its time cap).", "",
+              "| r (% diam.) | method | ran / grasps | found % | top-1 ADD-S % | top-1 strict % | rot med (°) | "
+              "trans med (mm) | online med / p95 (ms) | note |", "|---:|---|---:|---:|---:|---:|---:|---:|---:|---|"]
+    for frac in fracs:
+        for method in METHODS:
+            tot = pooled(rows, frac, method)["all"]
+            if tot["n"]:
+                lines.append(f"| {100 * frac:g} | {method} | {tot['ran']} / {tot['n']} | {fmt(tot['found'], '.0f', 100)} | "
+                             f"{fmt(tot['top1_adds'], '.0f', 100)} | {fmt(tot['top1_strict'], '.0f', 100)} | "
+                             f"{fmt(tot['rot'], '.1f')} | {fmt(tot['trans'], '.1f')} | {fmt(tot['ms'], '.0f')} / "
+                             f"{fmt(tot['ms95'], '.0f')} | {tot['note']} |")
+    lines += ["", "## Models (built once per object)", "",
+              "| object | facets | patches | facet table | build (s) | peak RSS (GiB) | model file (GiB) | "
+              "surface samples (s) |", "|---|---:|---:|---|---:|---:|---:|---:|"]
+    for m in models:
+        lines.append(f"| {short(m['object'])} | {m['facets']} | {m['patches']} | {m['facet_table']} | "
+                     f"{fmt(m['build_s'], '.0f')} | {fmt(m['build_peak_rss_gib'], '.1f')} | "
+                     f"{fmt(m['model_file_gib'], '.1f')} | {fmt(m['surface_s'], '.0f')} |")
+    return "\n".join(lines) + "\n"
+
+
+def pooled(rows, frac, method):
+    """Grasp-weighted pooling of summary rows over objects (shares and counts; medians of the
+    per-object medians for errors and times)."""
+    out = {}
+    for split in SPLITS:
+        sel = [r for r in rows if float(r["radius_frac"]) == frac and r["method"] == method and r["split"] == split]
+        n, k = sum(int(r["grasps"]) for r in sel), sum(int(r["ran"]) for r in sel)
+        mean = (lambda col: sum(float(r[col]) * int(r["ran"]) for r in sel if int(r["ran"])) / k if k else np.nan)
+        med = (lambda col: float(np.nanmedian([float(r[col]) for r in sel if int(r["ran"])])) if k else np.nan)
+        out[split] = {"n": n, "ran": k, "found": mean("found"), "top1_adds": mean("top1_adds"),
+                      "top1_strict": mean("top1_strict"), "rot": med("rot_err_deg_median"),
+                      "trans": med("trans_err_mm_median"), "ms": med("online_ms_median"), "ms95": med("online_ms_p95"),
+                      "note": "" if k == n else f"{n - k} not run or not finished"}
+    sel = [r for r in rows if float(r["radius_frac"]) == frac and r["method"] == method and r["split"] == "all"]
+    out["status"] = {st: sum(int(r[f"status_{st}"] or 0) for r in sel) for st in STATUSES}
+    out["redraws"] = sum(int(r["redraws"]) for r in sel)
+    return out
+
+
+def write_summary(out):
+    c = sweep.read_columns(out / "timings.csv")
+    rows = summarize(c)
+    sweep.write_rows(out / "summary.csv", rows)
+    rows = sweep.read_rows(out / "summary.csv")
+    models = sweep.read_rows(out / "models.csv") if (out / "models.csv").exists() else []
+    cfg = json.loads((out / "config.json").read_text()) if (out / "config.json").exists() else {}
+    text = (f"{len(set(c['object']))} objects, radii {', '.join(f'{100 * f:g}' for f in sorted(set(c['radius_frac'])))} % "
+            f"of the diameter, {int(np.max(c['seed'])) + 1} grasps per object and radius, 4 fingers (cone 30°), "
+            f"noise σ_x = {100 * cfg.get('position_noise_frac', np.nan):g} % of the diameter, "
+            f"σ_n = {cfg.get('normal_noise_deg', np.nan):g}°, Gaussian; localize told the noise.")
+    (out / "summary.md").write_text(summary_markdown(rows, models, text))
+    return rows
+
+
+# --------------------------------------------------------------------------- figure
+
+def plot(out_dir):
+    """realistic_contacts.png/pdf from timings.csv (through summary.csv): top-1 against radius
+    per object, face-only against edge/vertex, where the truth is lost, and the methods."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out = Path(out_dir)
+    rows = write_summary(out)
+    objs = list(dict.fromkeys(r["object"] for r in rows))
+    fracs = sorted({float(r["radius_frac"]) for r in rows})
+    x = 100 * np.array(fracs)
+    get = {(r["object"], float(r["radius_frac"]), r["method"], r["split"]): r for r in rows}
+    with plt.rc_context(sweep.PAPER_RC):
+        fig, axes = plt.subplots(2, 2, figsize=(sweep.PAGE_WIDTH, 5.6))
+        ax = axes[0, 0]
+        colors = plt.cm.tab10(np.arange(len(objs))) if len(objs) <= 10 else plt.cm.tab20(np.arange(len(objs)) % 20)
+        for obj, color in zip(objs, colors):
+            y = [float(get[(obj, f, "fast", "all")]["top1_adds"]) if (obj, f, "fast", "all") in get else np.nan
+                 for f in fracs]
+            ys = [float(get[(obj, f, "fast", "all")]["top1_strict"]) if (obj, f, "fast", "all") in get else np.nan
+                  for f in fracs]
+            sym = get[(obj, fracs[0], "fast", "all")]["symmetry"]
+            ax.plot(x, y, "-o", color=color, ms=3, label=short(obj) + ("*" if sym != "none" else ""))
+            ax.plot(x, ys, ":", color=color, lw=0.8)
+        ax.set_xlabel("fingertip radius (% of diameter)")
+        ax.set_ylabel("top-1 success (share of grasps)")
+        ax.set_title("top-1: ADD-S < 10 % (solid), strict (dotted); * symmetric")
+        ax.set_ylim(-0.03, 1.03)
+        ax.legend(fontsize=5, ncol=2, frameon=False, loc="lower left")
+        ax = axes[0, 1]
+        width = 0.35 * (x[1] - x[0] if len(x) > 1 else 1.0)
+        for k, (split, color) in enumerate((("face-only", "tab:blue"), ("edge/vertex", "tab:orange"))):
+            tot = [pooled(rows, f, "fast")[split] for f in fracs]
+            pos = x + (k - 0.5) * width
+            ax.bar(pos, [t["top1_adds"] for t in tot], width, color=color, label=f"{split}, ADD-S")
+            ax.plot(pos, [t["top1_strict"] for t in tot], "k_", ms=6, mew=1.2, label="strict" if k == 0 else None)
+            for p, t in zip(pos, tot):
+                ax.annotate(str(t["n"]), (p, 0.02), ha="center", fontsize=5, color="white")
+        ax.set_xticks(x)
+        ax.set_xlabel("fingertip radius (% of diameter)")
+        ax.set_ylabel("top-1 success, all objects")
+        ax.set_title("face contacts only vs an edge/vertex contact (n in bars)")
+        ax.set_ylim(0, 1.15)
+        ax.legend(fontsize=6, frameon=False, ncol=3, loc="upper center")
+        ax = axes[1, 0]
+        stage_colors = dict(zip(STAGES, ("tab:red", "tab:orange", "gold", "tab:cyan", "tab:gray")))
+        n = np.array([pooled(rows, f, "fast")["all"]["n"] for f in fracs], dtype=float)
+        for k, crit in enumerate(("top1_adds", "top1_strict")):
+            bottom = np.zeros(len(fracs))
+            for stage in STAGES:
+                v = np.array([sum(int(r[f"fail_{crit}_{stage}"]) for r in rows if float(r["radius_frac"]) == f
+                                  and r["method"] == "fast" and r["split"] == "all") for f in fracs]) / np.maximum(n, 1)
+                ax.bar(x + (k - 0.5) * width, v, width, bottom=bottom, color=stage_colors[stage],
+                       hatch="//" if k else None, edgecolor="white", lw=0.3, label=STAGE_TEXT[stage] if k == 0 else None)
+                bottom += v
+        ax.set_xticks(x)
+        ax.set_xlabel("fingertip radius (% of diameter)")
+        ax.set_ylabel("top-1 misses, share of grasps")
+        ax.set_ylim(bottom=0)
+        ax.set_title("where the truth is lost: ADD-S misses (left), strict (hatched)")
+        ax.legend(fontsize=5.5, frameon=False, loc="upper left")
+        ax = axes[1, 1]
+        method_style = {"fast": ("o", "tab:blue"), "paper": ("s", "tab:cyan"), "icp-multistart": ("v", "tab:red"),
+                        "scaling-series": ("D", "tab:green")}
+        for method, (marker, color) in method_style.items():
+            tot = [pooled(rows, f, method)["all"] for f in fracs]
+            if not any(t["n"] for t in tot):
+                continue
+            y = [(t["top1_adds"] * t["ran"] / t["n"] if t["ran"] else 0.0) if t["n"] else np.nan for t in tot]
+            ax.plot(x, y, "-" + marker, color=color, label=f"{method} ({tot[0]['n']} grasps/radius)")
+        ax.set_xlabel("fingertip radius (% of diameter)")
+        ax.set_ylabel("top-1 ADD-S success (not run: miss)")
+        ax.set_title("methods on the same grasps (baselines: their subset)")
+        ax.set_ylim(-0.03, 1.03)
+        ax.legend(fontsize=6, frameon=False)
+        return sweep.save_figure(fig, out, NAME)
+
+
+def summary(out_dir):
+    return (Path(out_dir) / "summary.md").read_text()
+
+
+# --------------------------------------------------------------------------- driver
+
+def main(argv=None):
+    args, cfg, out = sweep.start(NAME, __doc__, argv)
+    cache = sweep.ROOT / cfg["model_cache"]
+    if not args.plot_only:
+        out.mkdir(parents=True, exist_ok=True)
+        builds, sweeping, missing = expected_minutes(cfg, cache)
+        print(f"{NAME}: {len(cfg['objects'])} objects x {len(cfg['radius_fracs'])} radii x {cfg['seeds']} grasps; "
+              f"expected about {builds + sweeping:.0f} min ({missing} model builds, {builds:.0f} min, one at a time; "
+              f"grasps {sweeping:.0f} min on {cfg.get('workers') or 1} workers)", flush=True)
+        start = time.perf_counter()
+        stages, metas = [], []
+        for name in cfg["objects"]:
+            sw = make_sweep(cfg, name, cache)
+            stage = out / "_scratch" / "sweeps" / stem(name)
+            stages.append(stage)
+            if args.fresh or not finished(sw, stage):
+                metas.append(prepare(name, cache))
+                sweep.run_logged(sw, stage, args, cfg)
+                if not cfg["keep_models"]:
+                    model_files(cache, name)["model"].unlink(missing_ok=True)
+            else:
+                metas.append(json.loads(model_files(cache, name)["meta"].read_text()))
+            publish(out, cfg, stages, metas, time.perf_counter() - start)
+            plot(out)
+            log.info("%s: done, %.0f min so far", name, (time.perf_counter() - start) / 60)
+    return sweep.finish(out, plot, summary)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
