@@ -21,12 +21,36 @@ def progress_bar(total=None, desc="", unit="it", show=None):
 
     show : True / False force it on / off; None decides by the terminal.
     """
+    visible = sys.stderr.isatty() if show is None else bool(show)
+    if not visible:
+        return _NO_BAR  # a tqdm object costs tens of microseconds even when disabled
     from tqdm.auto import tqdm
 
     delay = float(os.environ.get("CONTACTPOSE_PROGRESS_DELAY", PROGRESS_DELAY))
-    visible = sys.stderr.isatty() if show is None else bool(show)
     return tqdm(total=total, desc=desc, unit=unit, disable=not visible, delay=delay, leave=False,
                 file=sys.stderr, dynamic_ncols=True)
+
+
+class _NoBar:
+    """A bar that shows nothing: the same calls as tqdm's, doing nothing."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+    def update(self, n=1):
+        pass
+
+    def set_postfix(self, *args, **kwargs):
+        pass
+
+    def close(self):
+        pass
+
+
+_NO_BAR = _NoBar()
 
 
 class Deadline:

@@ -78,6 +78,8 @@ def join_tuples(S, n, triple=None, *, deadline=None, progress=None):
     normals = np.ascontiguousarray(normals, dtype=np.float64)
     measured = np.ascontiguousarray(measured, dtype=np.float64)
     e0 = pair_of[order[0], order[1]]
+    if cut[e0 + 1] - cut[e0] <= START_CHUNK:  # one chunk: the whole tree in one compiled call
+        return _join(first, second, cut, m, order, pair_of, normals, measured, float(tol))
     start = np.stack(_directed(first, second, cut, e0, order[0] < order[1]), axis=1).astype(np.int64).reshape(-1, 2)
     rows = [_level_adjacency(first, second, cut, m, order, pair_of, level) for level in range(2, n)]
     parts = []
@@ -167,6 +169,30 @@ def placement_order(S, n):
         order.append(best[1])
         parent.append(best[2])
     return np.array(order, dtype=np.int64), np.array(parent, dtype=np.int64)
+
+
+@numba.njit(cache=True)
+def _join(first, second, cut, m, order, pair_of, normals, measured, tol):
+    """The whole tree T in one compiled pass (level by level over every node), for trees
+    with at most START_CHUNK start nodes: as :func:`join_tuples`, without the chunks."""
+    n = len(order)
+    e0 = pair_of[order[0], order[1]]
+    start_a, start_b = _directed(first, second, cut, e0, order[0] < order[1])
+    nodes = np.zeros((len(start_a), n), dtype=np.int64)
+    nodes[:, 0], nodes[:, 1] = start_a, start_b
+    count = len(nodes)
+    for level in range(2, n):
+        indptr = np.empty((level, m + 1), dtype=np.int64)
+        targets = np.empty((level, max(cut[-1], 1)), dtype=np.int64)
+        for b in range(level):
+            e = pair_of[order[b], order[level]]
+            src, dst = _directed(first, second, cut, e, order[b] < order[level])
+            _adjacency(src, dst, m, indptr[b], targets[b])
+        nodes, count = _grow(nodes, count, level, indptr, targets, order, normals, measured, tol)
+    out = np.empty((count, n), dtype=np.int64)
+    for c in range(n):
+        out[:, order[c]] = nodes[:count, c]
+    return out
 
 
 @numba.njit(cache=True)
