@@ -25,7 +25,7 @@ from contactpose.errors import ContactPoseError, ContactsError, ResourceError, c
 from contactpose.model.patches import nearest_members
 from contactpose.progress import Deadline
 from contactpose.scoring import rank as ranking
-from contactpose.scoring.classes import MAX_CLASS_HYPOTHESES, pose_classes
+from contactpose.scoring.classes import MAX_CLASS_HYPOTHESES, distinct_poses, pose_classes
 from contactpose.scoring.freespace import free_space_violations
 from contactpose.scoring.infacet import within_noise
 from contactpose.scoring.status import status as status_of
@@ -71,7 +71,7 @@ __all__ = ["classify", "drop_blocked", "find_pairs", "join_hypotheses", "localiz
 def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prior=None,
              method="fast", solver=None, top=None, model_error=0.0, max_outliers=0, robust="huber",
              refine=DEFAULT_REFINE, samples=0, seed=None, sample_top=1, finger_radius=None,
-             time_limit=DEFAULT_TIME_LIMIT, progress=None):
+             time_limit=DEFAULT_TIME_LIMIT, progress=None, distinct=True):
     """Find every admissible finger-to-facet assignment and the object pose behind each.
 
     model : ObjectModel; contacts : Contacts (world frame); position_noise : per-axis σ of
@@ -93,6 +93,10 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
     kept, since their pose is one arbitrary member of a family. time_limit : seconds for the
     search (None: unbounded); when it runs out, the hypotheses found so far are returned with
     status "time_limit". progress : tqdm bars (None: on a terminal, for work over a second).
+    distinct : list one hypothesis per distinct pose, the best of its near-copies (assignments
+    to neighbouring facets that move the surface by under 5 % of the diameter, RMS:
+    scoring.classes.distinct_poses; "fast" only); ``result.num_assignments`` counts them all.
+    False lists every facet assignment.
     """
     method, solver = _check_options(method, solver, top, contacts, prior)
     deadline = Deadline(_check_time_limit(time_limit))
@@ -121,6 +125,11 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
         free_start = time.perf_counter()
         arrays = drop_blocked(model, contacts, arrays, finger_radius)
         timing["free_space"] = time.perf_counter() - free_start
+    assignments = len(arrays.cost)
+    if distinct and method == "fast":
+        distinct_start = time.perf_counter()
+        arrays = distinct_poses(model, arrays, tolerance.position_noise)[0]
+        timing["rank"] += time.perf_counter() - distinct_start
     rescue = ""
     if solver == "factor-graph":
         refine_start = time.perf_counter()
@@ -145,7 +154,8 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
                                                     top=sample_top))
         timing["sample"] = time.perf_counter() - sample_start
     timing["total"] = time.perf_counter() - start
-    return Result(status, hypotheses, timing, method, solver, tolerance, hint, num_hypotheses=num, classes=classes)
+    return Result(status, hypotheses, timing, method, solver, tolerance, hint, num_hypotheses=num, classes=classes,
+                  num_assignments=assignments)
 
 
 # ------------------------------------------------------------------ stages ---

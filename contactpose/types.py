@@ -284,6 +284,11 @@ class Result:
     num_hypotheses: int = 0
     classes: list = field(default_factory=list)
     extra: dict = field(default_factory=dict)
+    num_assignments: int | None = None
+
+    def __post_init__(self):
+        if self.num_assignments is None:
+            self.num_assignments = self.num_hypotheses
 
     @property
     def best(self):
@@ -292,8 +297,9 @@ class Result:
 
     def to_dict(self):
         """The localize JSON (contactpose/data/result.schema.json, SCHEMA_VERSION): ``units``,
-        ``timing_ms`` (ms; ``timing`` stays in seconds), ``num_hypotheses`` (all found) and
-        ``num_returned`` (listed, after ``top``), ``best`` (hypotheses[0] or null)."""
+        ``timing_ms`` (ms; ``timing`` stays in seconds), ``num_hypotheses`` (all found, one per
+        distinct pose), ``num_assignments`` (the facet assignments behind them, near-copies
+        included) and ``num_returned`` (listed, after ``top``), ``best`` (hypotheses[0] or null)."""
         hypotheses = [h.to_dict() for h in self.hypotheses]
         out = {
             "schema_version": SCHEMA_VERSION,
@@ -303,6 +309,7 @@ class Result:
             "method": self.method,
             "solver": self.solver,
             "num_hypotheses": int(self.num_hypotheses),
+            "num_assignments": int(self.num_assignments),
             "num_returned": len(hypotheses),
             "tolerance": tolerance_dict(self.tolerance),
             "timing_ms": {k: 1000.0 * float(v) for k, v in self.timing.items()},
@@ -371,7 +378,7 @@ def outlier_penalty(facets):
 
 #: Version of every JSON the CLI writes (contactpose/data/*.schema.json). Bump the minor
 #: number for added keys, the major one for renamed or removed keys.
-SCHEMA_VERSION = "1.0"
+SCHEMA_VERSION = "1.1"
 #: The columns of a hypothesis's (n, 5) residuals: the normal residual R n_k + ñ_i (world,
 #: unitless), the offset (point-to-plane; eq. (7) for "paper") and the lateral distance
 #: outside the facet triangle (length units).

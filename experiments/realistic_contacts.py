@@ -182,8 +182,7 @@ class Setup:
     faces: np.ndarray
     surface: bl.Surface
     target: object
-    mean: np.ndarray
-    root_cov: np.ndarray
+    moments: tuple
     labels: np.ndarray
 
 
@@ -199,11 +198,10 @@ def setup(name, cache, cfg):
         surface = bl.Surface(s["points"], s["normals"], s["facets"], s["center"], float(s["radius"]), s["neighbours"],
                              raycaster(model))
         p = model.surface_points
-        w, V = np.linalg.eigh(np.cov(p.T, bias=True))
         labels = model.patches.labels if model.patch_table is not None else np.arange(model.num_facets)
         warm_up()
-        return Setup(model, vertices, faces, surface, bl.icp_target(surface, cfg["icp_target_points"]), p.mean(axis=0),
-                     V * np.sqrt(np.maximum(w, 0.0)), labels)
+        return Setup(model, vertices, faces, surface, bl.icp_target(surface, cfg["icp_target_points"]),
+                     (p.mean(axis=0), p.T @ p / len(p)), labels)
     return sweep.cached((NAME, name, str(cache)), load)
 
 
@@ -265,12 +263,9 @@ def incident_facets(s, facet, point, feature):
 
 
 def embed(s, poses):
-    """Poses (..., 4, 4) as 12-vectors whose Euclidean distance is the RMS displacement of the
-    model's surface points between the poses (metrics.rms_displacement): [R L, R μ + t], with
-    μ the points' mean and L Lᵀ their covariance. RMS ≥ ADD ≥ ADD-S."""
-    R = poses[..., :3, :3]
-    RL = np.einsum("...ij,jk->...ik", R, s.root_cov).reshape(*poses.shape[:-2], 9)
-    return np.concatenate([RL, np.einsum("...ij,j->...i", R, s.mean) + poses[..., :3, 3]], axis=-1)
+    """Poses (..., 4, 4) as 12-vectors whose distances are the RMS displacements of the
+    model's surface points (metrics.pose_embedding). RMS ≥ ADD ≥ ADD-S."""
+    return metrics.pose_embedding(poses, *s.moments)
 
 
 def adds(s, pose, truth):

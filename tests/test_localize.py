@@ -319,7 +319,7 @@ def test_status_ok_means_the_truth_is_the_only_fitting_pose_class(banana_model, 
         limit = SAME_CLASS_ADDS_FRAC * model.diameter
         for _ in range(15):
             g = simulate.grasp(model, rng, n=4, noise="bounded", **NOISE)
-            r = localize(model, g.contacts, **NOISE)
+            r = localize(model, g.contacts, **NOISE, distinct=False)
             a = r.hypotheses.arrays
             truth = np.flatnonzero((a.facets == g.facets).all(axis=1))
             assert len(truth) == 1
@@ -605,7 +605,7 @@ def test_recall_of_true_tuple_fast_is_complete(models, name):
     assert models[name].patch_table is None
     model = models[name]
     missed = [i for i, g in enumerate(recall_grasps(model, 300))
-              if not has_row(localize(model, g.contacts, **NOISE).hypotheses.arrays.facets, g.facets)]
+              if not has_row(localize(model, g.contacts, **NOISE, distinct=False).hypotheses.arrays.facets, g.facets)]
     assert missed == [], f"{len(missed)} of {RECALL_GRASPS} grasps miss the true tuple"
 
 
@@ -617,7 +617,7 @@ def test_localize_hypotheses_equal_the_facet_level_stages(models, name):
     assert model.patch_table is None
     tolerance = Tolerance.from_noise(POSITION_NOISE, NORMAL_NOISE_DEG)
     for g in recall_grasps(model, 302)[:30]:
-        r = localize(model, g.contacts, **NOISE)
+        r = localize(model, g.contacts, **NOISE, distinct=False)
         assert same_rows(r.hypotheses.arrays.facets, fast_hypotheses(model, g.contacts, tolerance))
 
 

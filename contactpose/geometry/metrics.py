@@ -51,6 +51,17 @@ def rms_displacement(T_a, T_b, mean, second):
     return np.sqrt(np.maximum(msq, 0.0))
 
 
+def pose_embedding(poses, mean, second):
+    """Poses (..., 4, 4) as 12-vectors [R L, R μ + t] whose Euclidean distances are the RMS
+    displacements of :func:`rms_displacement` (L Lᵀ the points' covariance E[ppᵀ] - μμᵀ),
+    so near poses can be found with a k-d tree. mean : (3,), second : (3, 3)  ->  (..., 12)"""
+    w, V = np.linalg.eigh(second - np.outer(mean, mean))
+    root = V * np.sqrt(np.maximum(w, 0.0))
+    R = poses[..., :3, :3]
+    RL = np.einsum("...ij,jk->...ik", R, root).reshape(*poses.shape[:-2], 9)
+    return np.concatenate([RL, np.einsum("...ij,j->...i", R, mean) + poses[..., :3, 3]], axis=-1)
+
+
 def adds_many(T_a, T_b, points, tree):
     """ADD-S of K poses T_a (K, 4, 4) against one pose T_b (4, 4)  ->  (K,); see :func:`adds`."""
     T = np.linalg.solve(T_b[None], T_a)

@@ -47,6 +47,13 @@ log = logging.getLogger(__name__)
 DEFAULT_PATCH_TOL_DEG = 0.5
 #: facet_pairs="auto" drops the facet-level table above this size when patches serve.
 FACET_TABLE_AUTO_BYTES = 512 * 2**20
+#: patch_tol_deg="auto": when patches at DEFAULT_PATCH_TOL_DEG do not shrink the search and
+#: the facet table would exceed FACET_TABLE_AUTO_BYTES (a fine tessellation of a smooth
+#: surface, such as the 16,384-facet YCB meshes), surface regions are grown at each of these
+#: angles in turn until they do: connected facets whose normals lie within the angle of the
+#: region's first facet. Their pair intervals hold every member pair's, so the search stays
+#: complete (research/regions.md); the first angle gives 2,033 regions on the YCB banana.
+REGION_DEG = (5.0, 10.0, 15.0)
 BOUNDS = ("exact", "paper")
 #: Pose classes measure ADD-S on at most this many surface points (localize.same_placement):
 #: a mean over 256 points moves by under 0.4 % of the diameter against all of them (measured
@@ -286,7 +293,7 @@ class ObjectModel:
     # ----------------------------------------------------------------- build
     @classmethod
     def from_mesh(cls, mesh, *, bins=DEFAULT_BINS, bounds="exact", progress=None, fix_normals=False,
-                  max_span=None, patch_tol_deg=DEFAULT_PATCH_TOL_DEG, facet_pairs="auto"):
+                  max_span=None, patch_tol_deg="auto", facet_pairs="auto"):
         """Build the model of a mesh (§3.1).
 
         mesh : path or trimesh.Trimesh; bins : (p_dmax, p_dmin, p_alpha) bin counts;
@@ -297,7 +304,9 @@ class ObjectModel:
         found with a spatial index (None: all pairs);
         patch_tol_deg : connected facets whose normals are within this angle of a patch's
         first facet form one patch for the default method's search (0: exactly coplanar;
-        None: no patches). Default: half the default normal noise;
+        None: no patches). "auto" (default): DEFAULT_PATCH_TOL_DEG, half the default normal
+        noise, and on a fine mesh whose facet table would be large, regions at the first of
+        REGION_DEG that shrinks the search;
         facet_pairs : keep the facet-level pair table, which the paper's method needs
         (True, False, or "auto": keep it unless patches serve the default method and the
         facet table would exceed FACET_TABLE_AUTO_BYTES).
@@ -572,12 +581,29 @@ def _late_diameter(vertices, triangles, planes, patches, find):
 
 def _find_patches(merged, planes, bounds, tol_deg):
     """Patches for the default method, or None (no patches, or a paper-bounds model).
-    merged : the vertex-merged mesh (for edge adjacency)."""
+    merged : the vertex-merged mesh (for edge adjacency); tol_deg : angle, None or "auto"."""
     if tol_deg is None or bounds != "exact":
         return None
-    if not (np.isfinite(tol_deg) and 0 <= tol_deg < 90):
-        raise MeshError(f"patch_tol_deg must be an angle in [0, 90) degrees or None, got {tol_deg!r}")
+    if isinstance(tol_deg, str) and tol_deg == "auto":
+        return _auto_patches(merged, planes)
+    if isinstance(tol_deg, (bool, str)) or not (np.isfinite(tol_deg) and 0 <= tol_deg < 90):
+        raise MeshError(f"patch_tol_deg must be an angle in [0, 90) degrees, 'auto' or None, got {tol_deg!r}")
     return find_patches(merged, planes, tol_deg)
+
+
+def _auto_patches(merged, planes):
+    """patch_tol_deg="auto": patches at DEFAULT_PATCH_TOL_DEG, or on a fine mesh with a large
+    facet table, regions at the first angle of REGION_DEG that shrinks the search."""
+    patches = find_patches(merged, planes, DEFAULT_PATCH_TOL_DEG)
+    valid = int(np.count_nonzero(planes.valid))
+    if patches.worthwhile or valid * (valid + 1) // 2 * STORED_BYTES_PER_PAIR <= FACET_TABLE_AUTO_BYTES:
+        return patches
+    for angle in REGION_DEG:
+        regions = find_patches(merged, planes, angle)
+        if regions.worthwhile:
+            log.info("%d facets: %d surface regions within %g deg", len(planes.valid), regions.count, angle)
+            return regions
+    return patches
 
 
 def _serves(patches):

@@ -8,12 +8,19 @@ exp(-χ²/2) summed over members, or from the factor graph's Laplace evidence.
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial import cKDTree
 
-from contactpose.geometry.metrics import SAME_CLASS_ADDS_FRAC, adds_many, rms_displacement
+from contactpose.geometry.metrics import SAME_CLASS_ADDS_FRAC, adds_many, pose_embedding, rms_displacement
 from contactpose.types import PoseClass, fit_threshold
 
 #: At most this many well-fitting hypotheses are grouped into pose classes.
 MAX_CLASS_HYPOTHESES = 256
+#: Hypotheses whose poses move the surface by less than this (RMS, the larger of a fraction
+#: of the diameter and a multiple of the position noise) are near-copies of one pose: a finer
+#: labelling of the same placement by neighbouring facets. The hypothesis list keeps the best
+#: of them (:func:`distinct_poses`).
+DISTINCT_RMS_FRAC = 0.05
+DISTINCT_RMS_SIGMA = 3.0
 
 
 def pose_classes(model, arrays, n, fits=None):
@@ -51,6 +58,33 @@ def classify_poses(model, all_poses, chi2, n, fits=None, probability=None):
     prob = weight / weight.sum()
     return [PoseClass(m, int(r), all_poses[r], float(chi2[r]), float(p))
             for m, r, p in zip(members, reps, prob)]
+
+
+def distinct_poses(model, arrays, position_noise):
+    """One hypothesis per distinct pose: the ranked hypotheses (HypothesisArrays) without the
+    near-copies of a better one, and how many assignments each one stands for.
+
+    A hypothesis is a near-copy when the surface points (model.class_points) move by less
+    than max(DISTINCT_RMS_FRAC · diameter, DISTINCT_RMS_SIGMA · position_noise), RMS, from a
+    better-ranked kept hypothesis that is determined or underdetermined as it is. Returns
+    (arrays of the kept hypotheses in rank order, (K,) int copies per kept hypothesis, itself included).
+    """
+    h = len(arrays.cost)
+    if h < 2:
+        return arrays, np.ones(h, dtype=np.int64)
+    radius = max(DISTINCT_RMS_FRAC * model.diameter, DISTINCT_RMS_SIGMA * position_noise)
+    free = arrays.fit.underdetermined
+    v = np.concatenate([pose_embedding(arrays.poses, *model.class_moments), 1e3 * radius * free[:, None]], axis=1)
+    tree = cKDTree(v)
+    owner = np.full(h, -1)
+    for i in range(h):  # rank order: each kept hypothesis absorbs the worse ones near it
+        if owner[i] < 0:
+            near = np.asarray(tree.query_ball_point(v[i], radius), dtype=np.int64)
+            near = near[(owner[near] < 0) & (near > i)]
+            owner[near] = i
+            owner[i] = i
+    kept = np.flatnonzero(owner == np.arange(h))
+    return arrays.take(kept), np.bincount(np.searchsorted(kept, owner), minlength=len(kept))
 
 
 def same_placement(model, poses, pose):

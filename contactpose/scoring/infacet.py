@@ -69,18 +69,10 @@ def within_noise(model, contacts, arrays, tolerance, threshold, enough=None, dea
     known to fit: the first ``enough`` fitting ones are exact, the rest may be left False.
     deadline : a progress.Deadline; once passed (after the first chunk), the rest are left False.
     """
-    chi2 = arrays.chi2
-    lateral = arrays.residuals[..., 4] ** 2
-    lateral[np.isnan(lateral)] = 0.0                       # unassigned fingers (max_outliers)
-    plane = chi2 - np.sum(lateral, axis=1) / tolerance.position_noise**2
-    ok = chi2 <= threshold
-    # the closed form minimises the plane part for the chosen facets only: with patches,
-    # another member (up to the patch tolerance off-plane) may fit better, so no pre-test
-    if model.patch_table is None:
-        check = np.flatnonzero(~ok & (plane <= threshold))
-    else:
-        several = np.diff(model.patches.indptr)[model.patches.labels[np.maximum(arrays.facets, 0)]] > 1
-        check = np.flatnonzero(~ok & ((plane <= threshold) | several.any(axis=1)))
+    ok = arrays.chi2 <= threshold
+    # no pre-test on the plane χ² at the closed form: the closed form is not the minimiser of
+    # the whitened plane χ², which may lie well below it (research/discrimination.md)
+    check = np.flatnonzero(~ok)
     chunk = max(len(check), 1) if enough is None else CHUNK
     for lo in range(0, len(check), chunk):
         if enough is not None and np.count_nonzero(ok[:check[lo]]) >= enough:

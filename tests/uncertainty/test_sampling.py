@@ -222,7 +222,7 @@ def test_input_errors():
 def test_sample_hypotheses_of_closed_form_result(banana_model):
     g, tol = _grasp(banana_model, 8)
     result = localize(banana_model, g.contacts, position_noise=tol.position_noise,
-                      normal_noise_deg=np.degrees(tol.normal_noise))
+                      normal_noise_deg=np.degrees(tol.normal_noise), distinct=False)
     samples = unc.sample_hypotheses(banana_model, g.contacts, result.hypotheses, result.tolerance, 300,
                                     np.random.default_rng(0), top=2)
     assert sorted(samples) == list(range(min(2, len(result.hypotheses))))

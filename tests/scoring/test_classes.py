@@ -1,0 +1,51 @@
+"""Distinct poses: one hypothesis per pose, checked against brute-force pairwise displacements."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from contactpose.geometry.metrics import pose_embedding, rms_displacement
+from contactpose.localize import localize
+from contactpose.scoring.classes import DISTINCT_RMS_FRAC, DISTINCT_RMS_SIGMA, distinct_poses
+from contactpose.sim import grasps as simulate
+
+NOISE = dict(position_noise=0.0005, normal_noise_deg=1.0)
+
+
+def test_embedding_distances_are_rms_displacements(rock_model):
+    """|e(A) - e(B)| equals the RMS displacement of the class points, computed point by point."""
+    rng = np.random.default_rng(4)
+    poses = np.stack([simulate.random_pose(rng, max_translation=0.05) for _ in range(6)])
+    e = pose_embedding(poses, *rock_model.class_moments)
+    p = rock_model.class_points
+    for a in range(6):
+        moved = p @ poses[:, :3, :3].transpose(0, 2, 1) + poses[:, None, :3, 3]
+        direct = np.sqrt(np.mean(np.sum((moved - moved[a]) ** 2, axis=2), axis=1))
+        assert np.allclose(np.linalg.norm(e - e[a], axis=1), direct, atol=1e-12)
+        assert np.allclose(rms_displacement(poses, poses[a], *rock_model.class_moments), direct, atol=1e-9)
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_distinct_poses_keep_one_per_pose(banana_model, seed):
+    """Brute force over all pairs: no two kept hypotheses are near-copies, every dropped one
+    is a near-copy of a better kept one, and the copies add up to every assignment."""
+    model = banana_model
+    g = simulate.grasp(model, np.random.default_rng(seed), n=4, noise="bounded", **NOISE)
+    every = localize(model, g.contacts, **NOISE, distinct=False)
+    a = every.hypotheses.arrays
+    kept, copies = distinct_poses(model, a, NOISE["position_noise"])
+    radius = max(DISTINCT_RMS_FRAC * model.diameter, DISTINCT_RMS_SIGMA * NOISE["position_noise"])
+    index = [int(np.flatnonzero((a.poses == pose).all(axis=(1, 2)))[0]) for pose in kept.poses]
+    assert index == sorted(index) and index[0] == 0 and copies.sum() == len(a.cost)
+    free = a.fit.underdetermined
+    for i in range(len(a.cost)):
+        d = rms_displacement(a.poses[index], a.poses[i], *model.class_moments)
+        near = (d < radius) & (free[index] == free[i])
+        if i in index:
+            assert np.flatnonzero(near).tolist() == [index.index(i)]
+        else:
+            assert any(k < i for k, n in zip(index, near) if n)
+    r = localize(model, g.contacts, **NOISE)
+    assert r.num_assignments == len(a.cost) and r.num_hypotheses == len(kept.cost)
+    assert np.allclose(r.hypotheses.arrays.poses, kept.poses)
