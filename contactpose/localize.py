@@ -22,7 +22,6 @@ import numpy as np
 
 from contactpose.contacts import Contacts, Tolerance
 from contactpose.errors import ContactPoseError, ContactsError, ResourceError, check_count
-from contactpose.model.patches import nearest_members
 from contactpose.progress import Deadline
 from contactpose.scoring import rank as ranking
 from contactpose.scoring.classes import MAX_CLASS_HYPOTHESES, distinct_poses, pose_classes
@@ -33,7 +32,6 @@ from contactpose.scoring.status import units_message
 from contactpose.search.pairs import admissible_pairs, pair_conditions
 from contactpose.search.tree import TripleTest, expected_tuples, join_tuples, join_tuples_paper
 from contactpose.solvers import factor_graph as fg
-from contactpose.solvers import residuals as res
 from contactpose.solvers.closed_form import fit_poses
 from contactpose.solvers.lm import fit_lm_all
 from contactpose.types import (
@@ -329,8 +327,9 @@ def classify(model, contacts, arrays, tolerance, *, method="fast", deadline=None
 
 def _patch_hypotheses(model, contacts, S, tolerance, prior, deadline=None, progress=None):
     """Facet tuples from the patch-level tree, one per patch tuple: pose it on the patch
-    planes, give each contact the member facet nearest to it, re-pose on those facets and
-    take the nearest members again (research/design.md)."""
+    planes, give each contact the member facet that fits it best (nearest, with the normal
+    it carries: scoring.rank.fitting_members), re-pose on those facets and take the members
+    again (research/design.md)."""
     patches = model.patches
     angle = tolerance.per_contact_bounds()[1] + float(patches.cone.max())
     triple = TripleTest(patches.normals, contacts.object_normals, angle)
@@ -341,7 +340,7 @@ def _patch_hypotheses(model, contacts, S, tolerance, prior, deadline=None, progr
     for _ in range(2):
         fit = fit_poses(normals, offsets, contacts.points, contacts.finger_normals,
                         angle_tol=tolerance.normal_noise, t0=t0, centroids=centres)
-        facets = nearest_members(patches, model.triangles, tuples, res.to_object_frame(fit.R, fit.t, contacts.points))
+        facets = ranking.fitting_members(model, contacts, tuples, fit.R, fit.t, tolerance)
         normals, offsets, centres = model.planes.normals[facets], model.planes.offsets[facets], model.centroids[facets]
     return facets
 

@@ -74,7 +74,7 @@ def test_default_models_are_the_ones_documented():
     """The README's synopsis (or the section written for it) names bench.DEFAULT_MODELS."""
     section = ROOT / "README_CLI_SECTION.md"
     text = (section if section.exists() else ROOT / "README.md").read_text()
-    synopsis = re.search(r"contactpose bench \[--models ([\w ]+)\]", text)
+    synopsis = re.search(r"contactpose bench \[--models ([\w: ]+)\]", text)
     assert synopsis and tuple(synopsis.group(1).split()) == bench.DEFAULT_MODELS
 
 

@@ -203,17 +203,27 @@ def _unrank(rank, p):
     return a, a + (rank - starts[a])
 
 
-def nearest_members(patches, triangles, tuples, p_obj):
+def nearest_members(patches, triangles, tuples, p_obj, normals=None):
     """The member facet of each hypothesised patch nearest to its contact.
 
     tuples : (Hp, n) patch indices; p_obj : (Hp, n, 3) contacts in the object frame under
-    each tuple's pose; triangles : (m, 3, 3).  ->  (Hp, n) int64 facet indices
+    each tuple's pose; triangles : (m, 3, 3); normals : None (nearest by distance), or
+    (facet_normals (m, 3), contact normals (Hp, n, 3) outward in the object frame, σ_x²/σ_n²):
+    the member with the least d²/σ_x² + |n_f - n|²/σ_n², the whitened χ² of that contact, so
+    that on a curved region a contact takes the member whose normal it carries, not only the
+    closest one.  ->  (Hp, n) int64 facet indices
     """
-    return _nearest(patches.indptr, patches.members, triangles, tuples, p_obj)
+    if normals is None:
+        facet_normals, obj_normals, weight = np.zeros((1, 3)), np.zeros((1, 1, 3)), 0.0
+    else:
+        facet_normals, obj_normals, weight = normals
+    return _nearest(patches.indptr, patches.members, triangles, tuples, p_obj,
+                    np.ascontiguousarray(facet_normals, dtype=np.float64),
+                    np.ascontiguousarray(obj_normals, dtype=np.float64), float(weight))
 
 
 @numba.njit(cache=True)
-def _nearest(indptr, members, triangles, tuples, p_obj):
+def _nearest(indptr, members, triangles, tuples, p_obj, facet_normals, obj_normals, weight):
     hp, n = tuples.shape
     out = np.empty((hp, n), dtype=np.int64)
     for h in range(hp):
@@ -223,6 +233,9 @@ def _nearest(indptr, members, triangles, tuples, p_obj):
             for e in range(indptr[q], indptr[q + 1]):
                 f = members[e]
                 d = point_triangle_dist2(p_obj[h, i], triangles[f, 0], triangles[f, 1], triangles[f, 2])
+                if weight > 0.0:
+                    for a in range(3):
+                        d += weight * (facet_normals[f, a] - obj_normals[h, i, a]) ** 2
                 if d < best:
                     best = d
                     out[h, i] = f

@@ -85,6 +85,16 @@ def refined_arrays(model, contacts, refinement, fit, tolerance):
                              covariance=refinement.covariance, probability=refinement.probability, order=False)
 
 
+def fitting_members(model, contacts, tuples, R, t, tolerance):
+    """The member facet of each hypothesised patch that fits its contact best under the pose
+    (R (H, 3, 3), t (H, 3)): least whitened distance and normal residual
+    (model.patches.nearest_members). tuples : (H, n) patch indices  ->  (H, n) facets"""
+    normals = -np.einsum("hji,nj->hni", R, contacts.finger_normals)
+    weight = (tolerance.position_noise / tolerance.normal_noise) ** 2
+    return nearest_members(model.patches, model.triangles, tuples, res.to_object_frame(R, t, contacts.points),
+                           (model.planes.normals, normals, weight))
+
+
 def polish(model, contacts, arrays, tolerance):
     """The ranked hypotheses with the poses of those that could beat the best moved toward
     the least full χ² (infacet.polished_poses), where that lowers it.
@@ -105,8 +115,7 @@ def polish(model, contacts, arrays, tolerance):
     R, t = polished_poses(model, contacts, arrays, rows, tolerance, fit_threshold(contacts.n))
     facets = arrays.facets[rows]
     if model.patch_table is not None:
-        labels = np.ascontiguousarray(model.patches.labels[facets])
-        facets = nearest_members(model.patches, model.triangles, labels, res.to_object_frame(R, t, contacts.points))
+        facets = fitting_members(model, contacts, np.ascontiguousarray(model.patches.labels[facets]), R, t, tolerance)
     fit = arrays.fit.take(rows)
     fit.R, fit.t = R, t
     moved = hypothesis_arrays(model, contacts, facets, fit, tolerance, order=False)
