@@ -7,8 +7,8 @@ exp(-χ²/2) summed over members, or from the factor graph's Laplace evidence.
 
 from __future__ import annotations
 
+import numba
 import numpy as np
-from scipy.spatial import cKDTree
 
 from contactpose.geometry.metrics import SAME_CLASS_ADDS_FRAC, adds_many, pose_embedding, rms_displacement
 from contactpose.types import PoseClass, fit_threshold
@@ -72,19 +72,48 @@ def distinct_poses(model, arrays, position_noise):
     h = len(arrays.cost)
     if h < 2:
         return arrays, np.ones(h, dtype=np.int64)
-    radius = max(DISTINCT_RMS_FRAC * model.diameter, DISTINCT_RMS_SIGMA * position_noise)
-    free = arrays.fit.underdetermined
-    v = np.concatenate([pose_embedding(arrays.poses, *model.class_moments), 1e3 * radius * free[:, None]], axis=1)
-    tree = cKDTree(v)
-    owner = np.full(h, -1)
-    for i in range(h):  # rank order: each kept hypothesis absorbs the worse ones near it
-        if owner[i] < 0:
-            near = np.asarray(tree.query_ball_point(v[i], radius), dtype=np.int64)
-            near = near[(owner[near] < 0) & (near > i)]
-            owner[near] = i
-            owner[i] = i
+    owner = pose_leaders(model, arrays.poses, arrays.fit.underdetermined, distinct_radius(model, position_noise))
     kept = np.flatnonzero(owner == np.arange(h))
     return arrays.take(kept), np.bincount(np.searchsorted(kept, owner), minlength=len(kept))
+
+
+def distinct_radius(model, position_noise):
+    """RMS displacement below which two poses are near-copies (see DISTINCT_RMS_FRAC)."""
+    return max(DISTINCT_RMS_FRAC * model.diameter, DISTINCT_RMS_SIGMA * position_noise)
+
+
+def pose_leaders(model, poses, underdetermined, radius):
+    """Greedy grouping of ranked poses (H, 4, 4), best first: each pose not yet taken leads a
+    group and takes every later one that moves model.class_points by at most ``radius``, RMS,
+    and is underdetermined (H,) bool as it is. -> (H,) int, the leader of each pose."""
+    v = np.concatenate([pose_embedding(poses, *model.class_moments), 1e3 * radius * underdetermined[:, None]], axis=1)
+    return _leaders(np.ascontiguousarray(v), radius * radius)
+
+
+@numba.njit(cache=True)
+def _leaders(v, r2):
+    """Greedy grouping in rank order: each row not yet taken leads a group and takes every
+    later free row within sqrt(r2) of it. v : (H, d)  ->  (H,) the leader of each row."""
+    h, d = v.shape
+    owner = np.full(h, -1)
+    free = np.arange(h)       # rows not yet taken, in rank order (compacted as rows are taken)
+    left = h
+    while left:
+        lead = free[0]
+        owner[lead] = lead
+        keep = 0
+        for e in range(1, left):
+            j = free[e]
+            dist = 0.0
+            for c in range(d):
+                dist += (v[j, c] - v[lead, c]) ** 2
+            if dist <= r2:
+                owner[j] = lead
+            else:
+                free[keep] = j
+                keep += 1
+        left = keep
+    return owner
 
 
 def same_placement(model, poses, pose):

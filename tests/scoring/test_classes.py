@@ -49,3 +49,4 @@ def test_distinct_poses_keep_one_per_pose(banana_model, seed):
     r = localize(model, g.contacts, **NOISE)
     assert r.num_assignments == len(a.cost) and r.num_hypotheses == len(kept.cost)
     assert np.allclose(r.hypotheses.arrays.poses, kept.poses)
+
