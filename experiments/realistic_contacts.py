@@ -153,7 +153,7 @@ def prepare(name, cache):
     if all(f.exists() for f in files.values()) and current(files["model"]):
         return json.loads(files["meta"].read_text())
     Path(cache).mkdir(parents=True, exist_ok=True)
-    log.info("%s: building the model (one at a time: a 16,384-facet build peaks near 13 GiB)", name)
+    log.info("%s: building the model (one at a time: with a facet table a 16,384-facet build peaks near 13 GiB)", name)
     code = ("import importlib.util, sys; spec = importlib.util.spec_from_file_location('realistic_build', sys.argv[1]); "
             "m = sys.modules['realistic_build'] = importlib.util.module_from_spec(spec); spec.loader.exec_module(m); "
             "m.build_model_files(*sys.argv[2:])")
@@ -723,13 +723,13 @@ def main(argv=None):
             sw = make_sweep(cfg, name, cache)
             stage = out / "_scratch" / "sweeps" / stem(name)
             stages.append(stage)
-            if args.fresh or not finished(sw, stage):
-                metas.append(prepare(name, cache))
+            done = not args.fresh and finished(sw, stage)
+            meta = model_files(cache, name)["meta"]
+            metas.append(json.loads(meta.read_text()) if done and meta.exists() else prepare(name, cache))
+            if not done:
                 sweep.run_logged(sw, stage, args, cfg)
                 if not cfg["keep_models"]:
                     model_files(cache, name)["model"].unlink(missing_ok=True)
-            else:
-                metas.append(json.loads(model_files(cache, name)["meta"].read_text()))
             publish(out, cfg, stages, metas, time.perf_counter() - start)
             plot(out)
             log.info("%s: done, %.0f min so far", name, (time.perf_counter() - start) / 60)
