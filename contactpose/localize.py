@@ -69,7 +69,7 @@ __all__ = ["classify", "drop_blocked", "find_pairs", "join_hypotheses", "localiz
 def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prior=None,
              method="fast", solver=None, top=None, model_error=0.0, max_outliers=0, robust="huber",
              refine=DEFAULT_REFINE, samples=0, seed=None, sample_top=1, finger_radius=None,
-             time_limit=DEFAULT_TIME_LIMIT, progress=None, distinct=True):
+             time_limit=DEFAULT_TIME_LIMIT, progress=None, distinct=True, surface=False):
     """Find every admissible finger-to-facet assignment and the object pose behind each.
 
     model : ObjectModel; contacts : Contacts (world frame); position_noise : per-axis σ of
@@ -94,7 +94,11 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
     distinct : list one hypothesis per distinct pose, the best of its near-copies (assignments
     to neighbouring facets that move the surface by under 5 % of the diameter, RMS:
     scoring.classes.distinct_poses; "fast" only); ``result.num_assignments`` counts them all.
-    False lists every facet assignment.
+    False lists every facet assignment. surface : pose the best hypotheses on the surface
+    contact model, where a contact may lie on an edge or vertex with its normal in that
+    feature's normal cone (solvers.surface, research/surface.md; "fast" with the closed form
+    and distinct poses only: ``distinct=False`` lists facet assignments, each posed on its
+    facets). Off by default: it costs 5-15 ms per refined hypothesis.
     """
     method, solver = _check_options(method, solver, top, contacts, prior)
     deadline = Deadline(_check_time_limit(time_limit))
@@ -128,6 +132,12 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
         distinct_start = time.perf_counter()
         arrays = distinct_poses(model, arrays, tolerance.position_noise)[0]
         timing["rank"] += time.perf_counter() - distinct_start
+    if surface and distinct and method == "fast" and solver == "closed-form":
+        surface_start = time.perf_counter()
+        arrays = ranking.surface_refined(model, contacts, arrays, tolerance)
+        if distinct:
+            arrays = distinct_poses(model, arrays, tolerance.position_noise)[0]
+        timing["pose"] += time.perf_counter() - surface_start
     rescue = ""
     if solver == "factor-graph":
         refine_start = time.perf_counter()

@@ -82,14 +82,17 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("objects", nargs="+")
     parser.add_argument("--grasps", type=int, default=25)
+    parser.add_argument("--region-deg", type=float, default=None,
+                        help="grow regions at this angle instead of the default (patch_tol_deg='auto')")
     args = parser.parse_args(argv)
     warnings.simplefilter("ignore")
-    out = ROOT / "results" / "regions_check"
+    out = ROOT / "results" / "regions_check" / ("" if args.region_deg is None else f"regions_{args.region_deg:g}deg")
     out.mkdir(parents=True, exist_ok=True)
     lines = []
     for name in args.objects:
         start = time.perf_counter()
-        model = ObjectModel.from_mesh(objects.load(name))
+        tol = "auto" if args.region_deg is None else args.region_deg
+        model = ObjectModel.from_mesh(objects.load(name), patch_tol_deg=tol)
         build = time.perf_counter() - start
         merged = merged_mesh(model.vertices, model.faces)
         vertices, faces = np.asarray(merged.vertices), np.asarray(merged.faces)

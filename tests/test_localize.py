@@ -528,7 +528,8 @@ def test_finger_permutation_permutes_facets(models):
             for f, T in zip(b.hypotheses.arrays.facets, b.hypotheses.arrays.poses):
                 orig = np.empty(4, dtype=int)
                 orig[perm] = f
-                assert np.abs(poses_a[tuple(orig)] - T).max() < 1e-9
+                # the surface fit is iterative (finite-difference Jacobians): equal to ~1e-9
+                assert np.abs(poses_a[tuple(orig)] - T).max() < 1e-8
 
 
 def test_paper_lm_from_prior_matches_paper_closed_form(banana_model):

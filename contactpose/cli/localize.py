@@ -37,6 +37,9 @@ def register(sub):
     p.add_argument("--max-outliers", type=int, default=0, metavar="Q", help="fingers that may be left unassigned")
     p.add_argument("--finger-radius", type=float, metavar="R",
                    help="drop hypotheses that put a contact where no fingertip of this radius fits (default: off)")
+    p.add_argument("--surface", action="store_true",
+                   help="pose the best hypotheses on the surface contact model: contacts may lie on edges and "
+                        "vertices, their normals in those features' normal cones (method fast, closed form)")
     p.add_argument("--samples", type=int, default=0, metavar="N", help="posterior samples of the best pose (emcee)")
     p.add_argument("--seed", type=int, metavar="S", help="seed for --samples (default: a fresh one each run)")
     p.add_argument("--top", type=int, metavar="K", help="write only the best K hypotheses with -o (default: all)")
@@ -56,6 +59,8 @@ def warn_options_in_vain(args):
         warn_in_vain("--seed", "without --samples")
     if args.robust is not None and args.solver != "factor-graph" and not args.samples:
         warn_in_vain("--robust", "without --solver factor-graph or --samples")
+    if args.surface and (args.method == "paper" or args.solver not in (None, "closed-form")):
+        warn_in_vain("--surface", "with --method paper or --solver lm|factor-graph (closed form only)")
     if args.top is not None and not args.output:
         warn_in_vain("--top", "without -o (the printed result shows the best hypothesis only)")
     if args.fix_normals and is_model_file(args.model):
@@ -71,7 +76,8 @@ def run(args):
                       normal_noise_deg=args.normal_noise_deg, prior=prior, method=args.method,
                       solver=args.solver, top=args.top, robust=args.robust or DEFAULT_ROBUST,
                       max_outliers=args.max_outliers, samples=args.samples, seed=args.seed,
-                      finger_radius=args.finger_radius, time_limit=args.time_limit or None)
+                      finger_radius=args.finger_radius, time_limit=args.time_limit or None,
+                      surface=args.surface)
     warn_options_in_vain(args)  # after the checks: bad input gets its one error line only
     if args.output:
         jsonfiles.write_json(args.output, result.to_dict())

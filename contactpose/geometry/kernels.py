@@ -151,11 +151,20 @@ def _closest_on_edges(p, a, b, c):
 @njit(cache=True)
 def _closest_on_triangle(p, a, b, c):
     """Closest point to p on the closed triangle abc (3-tuples)."""
+    return _triangle_feature(p, a, b, c)[0]
+
+
+@njit(cache=True)
+def _triangle_feature(p, a, b, c):
+    """Closest point to p on the closed triangle abc, and where it lies: (point, code, dir)
+    with code 0 a vertex, 1 an edge of direction dir (unit), 2 the inside, of normal dir
+    (unit). Sliver triangles answer by their edges, code 0."""
     ab = _sub(b, a)
     ac = _sub(c, a)
     n = _cross(ab, ac)
+    none = (0.0, 0.0, 0.0)
     if _is_sliver(ab, ac, _sub(c, b), n):
-        return _closest_on_edges(p, a, b, c)
+        return _closest_on_edges(p, a, b, c), 0, none
     ap = _sub(p, a)
     bp = _sub(p, b)
     cp = _sub(p, c)
@@ -164,24 +173,32 @@ def _closest_on_triangle(p, a, b, c):
     d5, d6 = _dot(ab, cp), _dot(ac, cp)
     # Voronoi regions of the vertices, then of the edges (disjoint, so any order)
     if d1 <= 0.0 and d2 <= 0.0:
-        return a
+        return a, 0, none
     if d3 >= 0.0 and d4 <= d3:
-        return b
+        return b, 0, none
     if d6 >= 0.0 and d5 <= d6:
-        return c
+        return c, 0, none
     vc = d1 * d4 - d3 * d2
     if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
-        return _axpy(d1 / (d1 - d3), ab, a)
+        return _axpy(d1 / (d1 - d3), ab, a), 1, _unit(ab)
     vb = d5 * d2 - d1 * d6
     if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
-        return _axpy(d2 / (d2 - d6), ac, a)
+        return _axpy(d2 / (d2 - d6), ac, a), 1, _unit(ac)
     va = d3 * d6 - d5 * d4
     if va <= 0.0 and d4 >= d3 and d5 >= d6:
         e43 = d4 - d3
-        return _axpy(e43 / (e43 + (d5 - d6)), _sub(c, b), b)
+        bc = _sub(c, b)
+        return _axpy(e43 / (e43 + (d5 - d6)), bc, b), 1, _unit(bc)
     # Face region: project onto the plane (better conditioned for thin
     # facets than recombining the barycentric weights).
-    return _axpy(-_dot(n, ap) / _dot(n, n), n, p)
+    return _axpy(-_dot(n, ap) / _dot(n, n), n, p), 2, _unit(n)
+
+
+@njit(cache=True)
+def _unit(v):
+    """v / |v| (v non-zero)."""
+    s = np.sqrt(_dot(v, v))
+    return (v[0] / s, v[1] / s, v[2] / s)
 
 
 @njit(cache=True)

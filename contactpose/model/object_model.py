@@ -38,6 +38,7 @@ from contactpose.model.features import DERIVED_FIELDS, PairFeatures, derived_fea
 from contactpose.model.memory import check_fits
 from contactpose.model.patches import Patches, PatchPairs, find_patches
 from contactpose.model.plan import PairPlan
+from contactpose.model.surface import SurfaceTopology
 from contactpose.model.table import DEFAULT_BINS, STORED_BYTES_PER_PAIR, PairTable, check_bins
 
 log = logging.getLogger(__name__)
@@ -384,6 +385,11 @@ class ObjectModel:
     def centroids(self):
         """(m, 3) float: facet centroids in the object frame."""
         return self.triangles.mean(axis=1)
+
+    @cached_property
+    def topology(self):
+        """SurfaceTopology: the facets at each edge and vertex, for the contact model (model.surface)."""
+        return SurfaceTopology.of(merged_mesh(self.vertices, self.faces), self.planes.valid)
 
     @cached_property
     def facet_radii(self):

@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import numba
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from contactpose.geometry.kernels import (  # 3-tuple kernels
     _add,
@@ -47,6 +46,7 @@ from contactpose.geometry.kernels import (  # 3-tuple kernels
     _sub,
     _t,
 )
+from contactpose.solvers.surface import moved
 
 #: Alternating-minimisation steps before the bound is taken (it is valid after any number).
 STEPS = 6
@@ -55,6 +55,9 @@ STEPS = 6
 #: times: the first-order error (~1 % measured) could matter there.
 RELINEARISE_BAND = 1.5
 RELINEARISE = 3
+#: A plane quadratic this ill-conditioned leaves a direction free (a hypothesis whose contacts
+#: landed on facets of parallel normals, solvers.surface): its bound is the χ² reached.
+SINGULAR_COND = 1e12
 #: Hypotheses checked at a time by within_noise(..., enough=...).
 CHUNK = 64
 #: Relinearisations of polished_poses.
@@ -98,7 +101,7 @@ def lowest_chi2_bound(model, contacts, arrays, rows, tolerance, threshold=None, 
                  (bound > threshold) & ((bound <= RELINEARISE_BAND * threshold) | ~determined))
         if not again.any():
             break
-        R[again], t[again] = _moved(R[again], t[again], xi[again])
+        R[again], t[again] = moved(R[again], t[again], xi[again])
         bound[again], xi[again] = _bounds(R[again], t[again], *(a[again] for a in planes), contacts,
                                           *(w[again] for w in weights), determined[again], free[again], shape, steps)
     return bound
@@ -111,7 +114,7 @@ def polished_poses(model, contacts, arrays, rows, tolerance, threshold, rounds=P
     χ² within ``threshold`` can reach. rows : (K,) int  ->  R (K, 3, 3), t (K, 3)"""
     R, t, planes, weights, determined, free, shape = _problem(model, contacts, arrays, rows, tolerance, threshold)
     for _ in range(rounds):
-        R, t = _moved(R, t, _bounds(R, t, *planes, contacts, *weights, determined, free, shape, STEPS)[1])
+        R, t = moved(R, t, _bounds(R, t, *planes, contacts, *weights, determined, free, shape, STEPS)[1])
     return R, t
 
 
@@ -130,12 +133,6 @@ def _problem(model, contacts, arrays, rows, tolerance, threshold):
     shape = (model.triangles, model.centroids, model.facet_radii, indptr, members,
              np.inf if threshold is None else float(threshold))
     return arrays.fit.R[rows], arrays.fit.t[rows], planes, weights, determined, free, shape
-
-
-def _moved(R, t, xi):
-    """The poses (R, t) moved by the right perturbation ξ = (ω, v): R Exp(ω), t + R v."""
-    R = R @ Rotation.from_rotvec(xi[:, :3]).as_matrix()
-    return R, t + np.einsum("kij,kj->ki", R, xi[:, 3:])
 
 
 def _regions(model, facets):
@@ -225,7 +222,7 @@ def _bound_kernel(R, t, normals, offsets, points, finger_normals, wn, wx, region
             const += wx[k, i] * _dot(u, u)
             r_n = _add(_r_apply(R[k], _add(nrm, _cross(w, nrm))), _t(finger_normals[i]))
             reached += wn[k, i] * _dot(r_n, r_n) + wx[k, i] * _dot(d, d)
-        if determined[k]:
+        if determined[k] and np.linalg.cond(A) < SINGULAR_COND:  # the facets may leave a direction free
             gh = g + h
             bound[k] = const - 2.0 * (h @ xi) - gh @ np.linalg.solve(A, gh)
         else:

@@ -15,8 +15,11 @@ from contactpose.model.patches import nearest_members
 from contactpose.scoring.infacet import polished_poses
 from contactpose.solvers import residuals as res
 from contactpose.solvers.closed_form import fit_poses
+from contactpose.solvers.surface import needs_surface, surface_fit
 from contactpose.types import HypothesisArrays, fit_threshold, outlier_penalty
 
+#: The default method fits this many of its best hypotheses on the surface (solvers.surface).
+SURFACE_REFINE = 8
 #: The default method moves the poses of at most this many hypotheses toward the least
 #: full χ² (:func:`polish`), those whose plane χ² is at least POLISH_GAIN below the best.
 POLISH = 256
@@ -24,20 +27,26 @@ POLISH_GAIN = 0.5
 
 
 def hypothesis_arrays(model, contacts, facets, fit, tolerance, *, method="fast", paper_cost=None,
-                      cost=None, covariance=None, probability=None, order=True):
+                      cost=None, covariance=None, probability=None, order=True, surface=None):
     """Hypotheses with their residuals and costs, ranked best first (unless ``order=False``).
 
     facets : (H, n) int (-1: unassigned); fit : PoseFit of the H poses; method : "fast"
     (cost = χ², residual column 3 the point-to-plane offset) or "paper" (cost = eq. (7)
     ℒ, ``paper_cost`` when LM computed it, column 3 the eq. (7) offset); cost : (H,) an
     explicit ranking cost (the factor graph's -log evidence); covariance : (H, 6, 6) and
-    probability : (H,) from the factor graph. residuals : (H, n, 5).
+    probability : (H,) from the factor graph. residuals : (H, n, 5). surface : the contact
+    model's landing (cone (H, n, 3) object-frame normals ν*, gap (H, n) distances |p − q|,
+    solvers.surface): r_n compares the contact with ν* instead of its facet's normal, and
+    r_l is what of the gap the plane offset leaves, so that χ² is χ²_S.
     """
     facets = np.asarray(facets, dtype=np.int64)
     ok, safe = facets >= 0, np.maximum(facets, 0)
     offsets = model.planes.offsets[safe]
     r_n, r_o, r_l = res.contact_residuals(fit.R, fit.t, model.planes.normals[safe], offsets,
                                           model.triangles[safe], contacts.points, contacts.finger_normals)
+    if surface is not None:
+        r_n = res.normal_residuals(fit.R, np.nan_to_num(surface[0]), contacts.finger_normals)
+        r_l = np.sqrt(np.maximum(np.nan_to_num(surface[1]) ** 2 - r_o**2, 0.0))
     if not ok.all():
         r_n, r_o, r_l = r_n * ok[..., None], r_o * ok, r_l * ok
     chi2 = res.whitened_cost(r_n, r_o, r_l, tolerance.normal_noise, tolerance.position_noise) + outlier_penalty(facets)
@@ -122,9 +131,39 @@ def polish(model, contacts, arrays, tolerance):
     better = moved.chi2 < arrays.chi2[rows]
     if not better.any():
         return arrays
-    arrays = arrays.take(np.arange(len(arrays.cost)))      # a copy to update
-    keep, src = rows[better], np.flatnonzero(better)
+    return _replaced(arrays, rows[better], moved.take(np.flatnonzero(better)))
+
+
+def surface_refined(model, contacts, arrays, tolerance, k=SURFACE_REFINE):
+    """The ranked hypotheses with the best ``k`` determined ones posed on the surface
+    (solvers.surface.surface_fit) where the contact model differs from their facets and the
+    surface pose lowers χ²: their facets become those the contacts land on, their residuals
+    those of the contact model. Re-ranked."""
+    rows = np.flatnonzero(~arrays.fit.underdetermined)[:k]
+    fits = []
+    for r in rows:
+        R, t, f = arrays.fit.R[r], arrays.fit.t[r], arrays.facets[r]
+        if needs_surface(model, contacts, R, t, f, tolerance):
+            fits.append((r, surface_fit(model, contacts, R, t, f, tolerance)))
+    fits = [(r, got) for r, got in fits if got[5] < arrays.chi2[r]]
+    if not fits:
+        return arrays
+    rows = np.array([r for r, _ in fits])
+    fit = arrays.fit.take(rows)
+    fit.R, fit.t = np.stack([got[0] for _, got in fits]), np.stack([got[1] for _, got in fits])
+    facets = np.stack([np.where(arrays.facets[r] >= 0, got[2], -1) for r, got in fits])
+    surface = np.stack([got[3] for _, got in fits]), np.stack([got[4] for _, got in fits])
+    moved = hypothesis_arrays(model, contacts, facets, fit, tolerance, order=False, surface=surface)
+    arrays = _replaced(arrays, rows, moved)
+    _, first = np.unique(arrays.facets, axis=0, return_index=True)  # two fits may land alike: keep the better
+    return arrays if len(first) == len(arrays.cost) else arrays.take(np.sort(first))
+
+
+def _replaced(arrays, rows, moved):
+    """A copy of the ranked hypotheses with rows ``rows`` replaced by ``moved`` (their
+    new facets, poses, costs and residuals), re-ranked."""
+    arrays = arrays.take(np.arange(len(arrays.cost)))
     for name in ("facets", "poses", "cost", "chi2", "residuals"):
-        getattr(arrays, name)[keep] = getattr(moved, name)[src]
-    arrays.fit.R[keep], arrays.fit.t[keep] = R[src], t[src]
+        getattr(arrays, name)[rows] = getattr(moved, name)
+    arrays.fit.R[rows], arrays.fit.t[rows] = moved.fit.R, moved.fit.t
     return arrays.take(np.argsort(arrays.cost, kind="stable"))

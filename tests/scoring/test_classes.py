@@ -46,7 +46,7 @@ def test_distinct_poses_keep_one_per_pose(banana_model, seed):
             assert np.flatnonzero(near).tolist() == [index.index(i)]
         else:
             assert any(k < i for k, n in zip(index, near) if n)
-    r = localize(model, g.contacts, **NOISE)
+    r = localize(model, g.contacts, **NOISE, surface=False)  # the listing as grouped, not re-posed on the surface
     assert r.num_assignments == len(a.cost) and r.num_hypotheses == len(kept.cost)
     assert np.allclose(r.hypotheses.arrays.poses, kept.poses)
 

@@ -1,0 +1,225 @@
+"""The surface contact model against independent references: dense sampling of arcs, the
+projection on a convex cone by non-negative least squares, brute force over every feature
+of a mesh, and the fingertip simulator's own contacts."""
+
+import numpy as np
+import pytest
+import trimesh
+from scipy.optimize import nnls
+from scipy.spatial.transform import Rotation
+
+from contactpose import Contacts, ObjectModel
+from contactpose.contacts import Tolerance
+from contactpose.model import surface
+from contactpose.model.object_model import merged_mesh
+from contactpose.scoring.rank import hypothesis_arrays
+from contactpose.sim import fingertip, objects
+from contactpose.solvers.closed_form import fit_poses
+from contactpose.solvers.surface import _Problem, landing, moved, surface_fit
+
+
+def _unit(v):
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def _cone_reference(n, generators):
+    """Nearest direction of the convex cone spanned by ``generators`` (k, 3) to n: the
+    Euclidean projection of n on the cone (nnls), normalised."""
+    weights, _ = nnls(generators.T, n)
+    y = generators.T @ weights
+    if np.linalg.norm(y) < 1e-12:  # n makes an obtuse angle with the whole cone
+        return generators[np.argmax(generators @ n)]
+    return y / np.linalg.norm(y)
+
+
+def test_arc_nearest_matches_dense_sampling():
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        a = _unit(rng.normal(size=3))
+        b = _unit(a + rng.uniform(0.05, 1.5) * _unit(rng.normal(size=3)))
+        n = _unit(a + rng.normal(scale=0.8, size=3))
+        s = np.array(surface._arc_nearest(tuple(n), tuple(a), tuple(b))[0])
+        omega = np.arccos(np.clip(a @ b, -1, 1))
+        u = np.linspace(0.0, 1.0, 20001)[:, None]
+        arc = (np.sin((1 - u) * omega) * a + np.sin(u * omega) * b) / np.sin(omega)
+        dense = np.min(np.linalg.norm(arc - n, axis=1))
+        assert abs(np.linalg.norm(s) - 1) < 1e-12
+        assert np.linalg.norm(n - s) <= dense + 1e-12
+        assert np.linalg.norm(n - s) >= dense - 1e-6
+
+
+def test_cone_nearest_matches_nonnegative_least_squares():
+    rng = np.random.default_rng(1)
+    for trial in range(300):
+        k = rng.integers(2, 8)
+        axis = _unit(rng.normal(size=3))
+        gens = _unit(axis + rng.uniform(0.05, 0.6) * rng.normal(size=(k, 3)))
+        n = _unit(axis + rng.normal(scale=0.5, size=3))
+        faces = np.arange(k)
+        s, near, _, _, _ = surface._cone_nearest(tuple(n), faces, gens)
+        ref = _cone_reference(n, gens)
+        assert np.linalg.norm(n - np.array(s)) == pytest.approx(np.linalg.norm(n - ref), abs=1e-9), trial
+        assert near == np.argmax(gens @ np.array(s))
+
+
+def _features(mesh, valid):
+    """Every feature of a vertex-merged mesh: faces, convex edges (with their two faces),
+    convex vertices (with their faces), as the contact model defines them."""
+    adjacency, edges = mesh.face_adjacency, mesh.face_adjacency_edges
+    convex = mesh.face_adjacency_convex
+    concave_vertices = set(edges[~convex].ravel())
+    vertex_faces = [np.flatnonzero((mesh.faces == v).any(axis=1) & valid) for v in range(len(mesh.vertices))]
+    vertices = [(v, f) for v, f in enumerate(vertex_faces) if v not in concave_vertices and len(f)]
+    return np.flatnonzero(valid), [(e, pair) for e, pair, c in zip(edges, adjacency, convex) if c], vertices
+
+
+def _brute_cost(mesh, valid, p, n, sx, sn):
+    """Least whitened cost over every feature of the mesh (dense arcs, nnls cones)."""
+    tri = mesh.triangles
+    normals = mesh.face_normals
+    faces, edges, vertices = _features(mesh, valid)
+    closest = trimesh.triangles.closest_point(tri[faces], np.repeat(p[None], len(faces), axis=0))
+    d2 = np.sum((closest - p) ** 2, axis=1) / sx**2 + np.sum((normals[faces] - n) ** 2, axis=1) / sn**2
+    best = d2.min()
+    for (u, w), (f, g) in edges:
+        a, b = mesh.vertices[u], mesh.vertices[w]
+        s = np.clip((p - a) @ (b - a) / ((b - a) @ (b - a)), 0, 1)
+        x = a + s * (b - a)
+        cone = _cone_reference(n, normals[[f, g]])
+        best = min(best, np.sum((x - p) ** 2) / sx**2 + np.sum((cone - n) ** 2) / sn**2)
+    for v, fs in vertices:
+        cone = _cone_reference(n, normals[fs])
+        best = min(best, np.sum((mesh.vertices[v] - p) ** 2) / sx**2 + np.sum((cone - n) ** 2) / sn**2)
+    return best
+
+
+@pytest.mark.parametrize("name", ["box", "rock"])
+def test_landing_finds_the_least_cost_feature_of_the_whole_mesh(name):
+    model = ObjectModel.from_mesh(objects.load(name))
+    mesh = merged_mesh(model.vertices, model.faces)
+    valid = model.planes.valid
+    rng = np.random.default_rng(2)
+    D = model.diameter
+    sx, sn = 0.01 * D, np.radians(3.0)
+    got = fingertip.approach(np.asarray(mesh.vertices), np.asarray(mesh.faces), rng, 40, 0.05 * D)
+    hit = got.hit
+    p = got.points[hit] + rng.normal(scale=0.3 * sx, size=(hit.sum(), 3))
+    n = _unit(got.normals[hit] + rng.normal(scale=0.3 * sn, size=(hit.sum(), 3)))
+    got = surface.land(model.topology, model.triangles, model.planes.normals, valid, p, n, got.facets[hit], sx, sn)
+    cost, kind, q, cone = got.cost, got.kind, got.q, got.cone
+    assert {surface.EDGE, surface.VERTEX} & set(kind.tolist()), "the sample should touch edges or vertices"
+    for i in range(len(p)):
+        ref = _brute_cost(mesh, valid, p[i], n[i], sx, sn)
+        assert cost[i] == pytest.approx(ref, rel=1e-6, abs=1e-9), i
+        # the reported feature is what the cost says: its point and cone direction
+        assert np.sum((p[i] - q[i]) ** 2) / sx**2 + np.sum((n[i] - cone[i]) ** 2) / sn**2 == pytest.approx(cost[i])
+
+
+def test_topology_neighbours_share_their_edge():
+    model = ObjectModel.from_mesh(objects.load("rock"))
+    top = model.topology
+    f, j = np.nonzero(top.edge_nbr >= 0)
+    g = top.edge_nbr[f, j]
+    a, b = top.fv[f, j], top.fv[f, (j + 1) % 3]
+    assert np.all((top.fv[g] == a[:, None]).any(axis=1) & (top.fv[g] == b[:, None]).any(axis=1))
+    assert np.all(f != g)
+
+
+def _edge_grasp(model, rng, radius, pose):
+    """Noise-free fingertip contacts (world frame) of a grasp that touches edges or vertices."""
+    mesh = merged_mesh(model.vertices, model.faces)
+    while True:
+        got = fingertip.approach(np.asarray(mesh.vertices), np.asarray(mesh.faces), rng, 4, radius)
+        if got.hit.all() and any(str(k) != fingertip.FACE for k in got.features):
+            break
+    R, t = pose[:3, :3], pose[:3, 3]
+    return Contacts(got.points @ R.T + t, finger_normals=-(got.normals @ R.T)), got
+
+
+def test_simulated_edge_contacts_fit_the_contact_model_exactly_and_the_fit_returns_to_them():
+    """At the true pose a rounded fingertip's contacts cost nothing under the contact model
+    (they lie on features with normals in the cones), while the facet model charges the
+    edge contacts; from a perturbed pose the surface fit comes back to the truth."""
+    model = ObjectModel.from_mesh(objects.load("box"))
+    rng = np.random.default_rng(4)
+    pose = np.eye(4)
+    pose[:3, :3] = Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix()
+    pose[:3, 3] = [0.01, -0.02, 0.03]
+    contacts, got = _edge_grasp(model, rng, 0.1 * model.diameter, pose)
+    tol = Tolerance.from_noise(0.001 * model.diameter, 1.0)
+    R, t = pose[:3, :3], pose[:3, 3]
+    assert np.all(landing(model, contacts, R, t, got.facets, tol).cost < 1e-12)
+    facets = got.facets[None]
+    fit = fit_poses(model.planes.normals[facets], model.planes.offsets[facets], contacts.points,
+                    contacts.finger_normals, angle_tol=tol.normal_noise, centroids=model.centroids[facets])
+    fit.R, fit.t = R[None], t[None]
+    facet_chi2 = hypothesis_arrays(model, contacts, facets, fit, tol, order=False).chi2[0]
+    assert facet_chi2 > 100.0
+    R1 = R @ Rotation.from_rotvec([0.02, -0.01, 0.015]).as_matrix()
+    t1 = t + 0.01 * model.diameter * np.array([1.0, -0.5, 0.3])
+    R2, t2, _, _, _, chi2 = surface_fit(model, contacts, R1, t1, got.facets, tol)
+    assert chi2 < 1e-6
+    assert np.degrees(Rotation.from_matrix(R2.T @ R).magnitude()) < 0.01
+    assert np.linalg.norm(t2 - t) < 1e-4 * model.diameter
+
+
+def test_localize_reports_the_contact_model_fit_of_an_edge_grasp():
+    """Noise-free fingertip contacts on the rock's edges: the best hypothesis is the true
+    pose, its χ² is the contact model's cost at its pose (recomputed here by landing), its
+    facets are where the contacts land; the facet model alone leaves a pose 1.3° off."""
+    from contactpose import localize
+
+    model = ObjectModel.from_mesh(objects.load("rock1k"))
+    rng = np.random.default_rng(7)
+    pose = np.eye(4)
+    pose[:3, :3] = Rotation.from_rotvec([-0.4, 0.1, 0.7]).as_matrix()
+    contacts, got = _edge_grasp(model, rng, 0.1 * model.diameter, pose)
+    sx = 0.002 * model.diameter
+    plain = localize(model, contacts, position_noise=sx, surface=False)
+    r = localize(model, contacts, position_noise=sx, surface=True)
+    best = r.best
+    err = np.degrees(Rotation.from_matrix(best.pose[:3, :3].T @ pose[:3, :3]).magnitude())
+    assert r.status == "ok" and err < 1e-6
+    at = landing(model, contacts, best.pose[:3, :3], best.pose[:3, 3], np.asarray(best.facets), r.tolerance)
+    cost, landed = at.cost, at.facet
+    assert r.hypotheses.arrays.chi2[0] == pytest.approx(cost.sum(), rel=1e-9)
+    assert np.array_equal(landed, best.facets)
+    assert r.hypotheses.arrays.chi2[0] < 1e-12 < 1.0 < plain.hypotheses.arrays.chi2[0]
+
+
+@pytest.mark.parametrize("name", ["rock1k", "box"])
+def test_surface_jacobian_matches_finite_differences(name):
+    """The Jacobian of χ²_S's residuals, features held, against central differences at
+    perturbations ξ where no contact changes feature (faces, edges, arcs, vertex cones)."""
+    model = ObjectModel.from_mesh(objects.load(name))
+    rng = np.random.default_rng(8)
+    tol = Tolerance.from_noise(0.002 * model.diameter, 2.0)
+    checked = set()
+    for trial in range(40):
+        pose = np.eye(4)
+        pose[:3, :3] = Rotation.from_rotvec(rng.normal(size=3)).as_matrix()
+        contacts, got = _edge_grasp(model, rng, 0.1 * model.diameter, pose)
+        noisy = Contacts(contacts.points + rng.normal(scale=0.5 * tol.position_noise, size=(4, 3)),
+                         finger_normals=_unit(contacts.finger_normals + rng.normal(scale=0.02, size=(4, 3))))
+        problem = _Problem(model, noisy, pose[:3, :3], pose[:3, 3], got.facets, tol, 1.0)
+        xi = rng.normal(scale=1e-3, size=6) * np.r_[1, 1, 1, [model.diameter] * 3]
+        R, t = moved(pose[None, :3, :3], pose[None, :3, 3], xi[None])
+        at = landing(model, noisy, R[0], t[0], got.facets, tol)
+        J = problem.jacobian(xi)
+        h = 1e-7 * np.r_[1, 1, 1, [model.diameter] * 3]
+        numeric = np.empty_like(J)
+        same = True
+        for c in range(6):
+            e = np.zeros(6)
+            e[c] = h[c]
+            for sign in (1, -1):
+                moved_at = _Problem(model, noisy, pose[:3, :3], pose[:3, 3], got.facets, tol, 1.0)
+                moved_at.residuals(xi + sign * e)
+                same &= np.array_equal(moved_at._at[3].kind, at.kind) and np.array_equal(
+                    moved_at._at[3].ncode, at.ncode) and np.array_equal(moved_at._at[3].pcode, at.pcode)
+            numeric[:, c] = (problem.residuals(xi + e) - problem.residuals(xi - e)) / (2 * h[c])
+        if not same:
+            continue
+        assert np.allclose(J, numeric, rtol=1e-5, atol=1e-5 * np.abs(J).max()), trial
+        checked |= {(int(k), int(c)) for k, c in zip(at.kind, at.ncode)}
+    assert {(surface.FACE, 0), (surface.EDGE, 1), (surface.VERTEX, 2)} <= checked, checked
