@@ -101,7 +101,7 @@ def fitting_members(model, contacts, tuples, R, t, tolerance):
     normals = -np.einsum("hji,nj->hni", R, contacts.finger_normals)
     weight = (tolerance.position_noise / tolerance.normal_noise) ** 2
     return nearest_members(model.patches, model.triangles, tuples, res.to_object_frame(R, t, contacts.points),
-                           (model.planes.normals, normals, weight))
+                           (model.planes.normals, normals, weight), (model.centroids, model.facet_radii))
 
 
 def polish(model, contacts, arrays, tolerance):

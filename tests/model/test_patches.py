@@ -48,3 +48,6 @@ def test_fitting_members_minimise_the_whitened_cost(curved):
             members = m.patches.of(tuples[h, i])
             d = point_triangle_distance(np.repeat(points[i][None], len(members), axis=0), m.triangles[members])
             assert d[list(members).index(plain[h, i])] == pytest.approx(d.min(), abs=1e-15)
+    pruned = nearest_members(m.patches, m.triangles, tuples, np.broadcast_to(points, (20, 4, 3)).copy(),
+                             spheres=(m.centroids, m.facet_radii))
+    assert np.array_equal(pruned, plain)  # the bounding spheres only skip members that cannot win
