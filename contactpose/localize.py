@@ -98,7 +98,9 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
     contact model, where a contact may lie on an edge or vertex with its normal in that
     feature's normal cone (solvers.surface, research/surface.md; "fast" with the closed form
     and distinct poses only: ``distinct=False`` lists facet assignments, each posed on its
-    facets). Off by default: it costs 5-15 ms per refined hypothesis.
+    facets). Off by default: it costs 5-15 ms per refined hypothesis. The samples use the
+    surface contact model's posterior with ``surface`` or on a model of surface regions
+    (``model.has_regions``), where the facet posterior is far too narrow (research/surface.md).
     """
     method, solver = _check_options(method, solver, top, contacts, prior)
     deadline = Deadline(_check_time_limit(time_limit))
@@ -159,7 +161,7 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
         sample_start = time.perf_counter()
         hypotheses.samples.update(sample_hypotheses(model, contacts, hypotheses, tolerance, samples,
                                                     np.random.default_rng(seed), prior=prior, robust=robust,
-                                                    top=sample_top))
+                                                    top=sample_top, surface=surface or model.has_regions))
         timing["sample"] = time.perf_counter() - sample_start
     timing["total"] = time.perf_counter() - start
     return Result(status, hypotheses, timing, method, solver, tolerance, hint, num_hypotheses=num, classes=classes,

@@ -386,6 +386,13 @@ class ObjectModel:
         """(m, 3) float: facet centroids in the object frame."""
         return self.triangles.mean(axis=1)
 
+    @property
+    def has_regions(self):
+        """True when the search runs over surface regions: patches grown above
+        DEFAULT_PATCH_TOL_DEG on a fine tessellation (research/regions.md)."""
+        return self.patch_table is not None and self.patches is not None and \
+            self.patches.tol_deg > DEFAULT_PATCH_TOL_DEG
+
     @cached_property
     def topology(self):
         """SurfaceTopology: the facets at each edge and vertex, for the contact model (model.surface)."""

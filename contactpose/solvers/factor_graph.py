@@ -126,6 +126,17 @@ def _robust_scale(s, kernel, k):
     return g / s, s / (1.0 + q) / g
 
 
+def robust_rho(s, kernel, k):
+    """ρ(s) of the kernel (code as in :func:`kernel_params`: 0 none, 1 Huber, 2 Cauchy) for
+    whitened residual norms s (array): g(s)²/2 of :func:`_robust_scale`."""
+    s = np.asarray(s, dtype=np.float64)
+    if kernel == 1:
+        return np.where(s <= k, 0.5 * s * s, k * s - 0.5 * k * k)
+    if kernel == 2:
+        return 0.5 * k * k * np.log1p(s * s / (k * k))
+    return 0.5 * s * s
+
+
 @njit(cache=True)
 def _contact_rows(M, data, params, e, J):
     """Whitened (robust) contact residuals and their Jacobian w.r.t. the Pose3.

@@ -43,6 +43,7 @@ from numba import njit
 
 from contactpose.errors import ContactPoseError, check_count
 from contactpose.model.memory import check_fits
+from contactpose.model.surface import land
 from contactpose.scoring.rank import closed_form_arrays
 from contactpose.solvers import factor_graph as fg
 from contactpose.types import json_array, json_number
@@ -190,13 +191,15 @@ class PosePosterior:
     model : ObjectModel; contacts : Contacts (n contacts); facets : (n,) int, one facet per
     contact; T_opt : (4, 4) the chart's centre (the factor-graph optimum); tolerance :
     Tolerance (σ_x, σ_n); prior : PosePrior or None; robust : "huber" | "cauchy" | "none";
-    point_to_facet : the lateral term, as in the factor graph.
+    point_to_facet : the lateral term, as in the factor graph; surface : the likelihood of the
+    surface contact model instead (solvers.surface: a contact may land on a neighbouring
+    facet, an edge or a vertex, its cost Σ_i ρ(√c_i) with c_i its whitened landing cost).
 
     Calling it with ξ : (W, 6) returns (W,) log-posteriors (-inf outside the chart).
     """
 
     def __init__(self, model, contacts, facets, T_opt, tolerance, *, prior=None, robust="huber",
-                 point_to_facet=True):
+                 point_to_facet=True, surface=False):
         facets = np.asarray(facets)
         if facets.shape != (contacts.n,):
             raise ContactPoseError(f"facets must have shape ({contacts.n},), got {facets.shape}")
@@ -208,6 +211,8 @@ class PosePosterior:
         self.params = fg.kernel_params(tolerance, robust, point_to_facet)
         self.robust = robust
         self.prior = prior
+        # surface: the contact model of solvers.surface, each contact landing near its facet
+        self.surface = (model, contacts, tolerance) if surface else None
         if prior is not None:
             self._prior_inv_pose = np.linalg.inv(prior.pose)
             self._prior_info = np.linalg.inv(prior.covariance_matrix())
@@ -226,11 +231,25 @@ class PosePosterior:
         xi = _check_xi(xi)
         out = np.full(len(xi), -np.inf)
         inside = _in_chart(xi)
+        if self.surface is not None:
+            out[inside] = -self._surface_cost(self.poses(xi[inside]))
+            return out
         for w, T in zip(np.flatnonzero(inside), self.poses(xi[inside])):
             # the factor graph's own error: ½|ẽ|² = Σ_i ρ(s_i)
             e, _ = fg.contact_residuals(T, self.data, self.params, jacobian=False)
             out[w] = -0.5 * (e @ e)
         return out
+
+    def _surface_cost(self, T):
+        """Σ_i ρ(√c_i) of the surface contact model at poses T (W, 4, 4) -> (W,)"""
+        model, contacts, tolerance = self.surface
+        R, t = T[:, :3, :3], T[:, :3, 3]
+        p = np.einsum("wji,wnj->wni", R, contacts.points[None] - t[:, None])
+        nu = -np.einsum("wji,nj->wni", R, contacts.finger_normals)
+        start = np.tile(self.facets, len(T))
+        cost = land(model.topology, model.triangles, model.planes.normals, model.planes.valid, p.reshape(-1, 3),
+                    nu.reshape(-1, 3), start, tolerance.position_noise, tolerance.normal_noise).cost
+        return fg.robust_rho(np.sqrt(cost), self.params[5], self.params[2]).reshape(len(T), -1).sum(axis=1)
 
     def log_prior(self, xi):
         """-½ Mahalanobis² of Log(T_p⁻¹ T), GTSAM's PriorFactorPose3 error (0 without a prior).
@@ -507,16 +526,17 @@ def summarize(run, posterior, laplace_covariance=None):
 
 def sample_pose(model, contacts, hypothesis_facets, T_opt, covariance, tolerance, *, prior=None, robust="huber",
                 n_samples=DEFAULT_SAMPLES, rng, n_walkers=DEFAULT_WALKERS, progress=None, point_to_facet=True,
-                max_steps=MAX_STEPS):
+                max_steps=MAX_STEPS, surface=False):
     """Posterior samples of one hypothesis's pose.
 
     model : ObjectModel; contacts : Contacts; hypothesis_facets : (n,) int; T_opt : (4, 4)
     factor-graph optimum; covariance : (6, 6) its Laplace covariance (walker start; if not
     finite, a regularised Gauss-Newton one is used); tolerance : Tolerance; prior, robust,
-    point_to_facet : as given to the factor graph; rng : numpy Generator. -> PoseSamples
+    point_to_facet : as given to the factor graph; rng : numpy Generator; surface : sample the
+    surface contact model's posterior (:class:`PosePosterior`). -> PoseSamples
     """
     post = PosePosterior(model, contacts, hypothesis_facets, T_opt, tolerance, prior=prior, robust=robust,
-                         point_to_facet=point_to_facet)
+                         point_to_facet=point_to_facet, surface=surface)
     cov = start_covariance(post, covariance, model.diameter)
     run = run_ensemble(post, cov, n_samples, rng, n_walkers=n_walkers, progress=progress, max_steps=max_steps)
     return summarize(run, post, cov)
@@ -588,7 +608,7 @@ def sample_mixture(model, contacts, facets, poses, covariances, probabilities, t
 # ------------------------------------------------------- ranked hypotheses ---
 
 def sample_hypotheses(model, contacts, hypotheses, tolerance, n_samples, rng, *, prior=None, robust="huber",
-                      top=1, progress=None):
+                      top=1, progress=None, surface=False):
     """Posterior samples of the best ``top`` hypotheses: dict rank -> PoseSamples.
 
     hypotheses : a ranked sequence of Hypothesis (``Result.hypotheses``). Hypotheses that
@@ -608,7 +628,7 @@ def sample_hypotheses(model, contacts, hypotheses, tolerance, n_samples, rng, *,
         if cov is None or not np.isfinite(cov).all():
             T, cov, facets = refine_one(model, sub, facets, tolerance, prior=prior, robust=robust)
         out[rank] = sample_pose(model, sub, facets, T, cov, tolerance, prior=prior, robust=robust,
-                                n_samples=n_samples, rng=rng, progress=progress)
+                                n_samples=n_samples, rng=rng, progress=progress, surface=surface)
     return out
 
 

@@ -260,3 +260,40 @@ def test_mixture_splits_samples_by_probability(banana_model):
     assert counts.sum() == 400
     # multinomial counts within 5 binomial standard deviations of the weights
     assert np.all(np.abs(counts - 400 * m.weights) <= 5 * np.sqrt(400 * m.weights * (1 - m.weights)) + 1)
+
+
+# ------------------------------------------------------ surface posterior ---
+
+@pytest.mark.parametrize("robust", ["none", "huber", "cauchy"])
+def test_robust_rho_is_the_gtsam_loss(robust):
+    s = np.linspace(0.0, 12.0, 97)
+    params = fg.kernel_params(Tolerance.from_noise(0.001, 1.0), robust)
+    got = fg.robust_rho(s, params[5], params[2])
+    if robust == "none":
+        ref = 0.5 * s**2
+    else:
+        est = {"huber": gtsam.noiseModel.mEstimator.Huber, "cauchy": gtsam.noiseModel.mEstimator.Cauchy}[robust]
+        ref = np.array([est.Create(params[2]).loss(x) for x in s])
+    np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("robust", ["none", "huber"])
+def test_surface_posterior_is_the_facet_posterior_where_contacts_stay_on_their_faces(rock_model, robust):
+    """Near a pose where every contact lands on its own face, the surface contact model's
+    likelihood is the factor graph's (normal, offset and lateral terms of those facets); where
+    a contact lands elsewhere it is lower in cost, never higher (the facet is one feature)."""
+    from contactpose.solvers.surface import landing
+
+    g, tol = _grasp(rock_model, 3)
+    ref = _refined(rock_model, g, tol, robust=robust)
+    T, facets = ref.poses[0], ref.facets[0]
+    facet = unc.PosePosterior(rock_model, g.contacts, facets, T, tol, robust=robust)
+    surface = unc.PosePosterior(rock_model, g.contacts, facets, T, tol, robust=robust, surface=True)
+    xi = np.random.default_rng(4).normal(size=(200, 6)) * np.r_[[0.01] * 3, [0.002] * 3]
+    a, b = facet.log_likelihood(xi), surface.log_likelihood(xi)
+    own = np.array([np.array_equal(landing(rock_model, g.contacts, P[:3, :3], P[:3, 3], facets, tol).facet, facets)
+                    and (landing(rock_model, g.contacts, P[:3, :3], P[:3, 3], facets, tol).kind == 0).all()
+                    for P in facet.poses(xi)])
+    assert 20 < own.sum() < len(xi)
+    np.testing.assert_allclose(b[own], a[own], rtol=1e-9, atol=1e-9)
+    assert np.all(b >= a - 1e-9)
