@@ -223,3 +223,10 @@ def test_surface_jacobian_matches_finite_differences(name):
         assert np.allclose(J, numeric, rtol=1e-5, atol=1e-5 * np.abs(J).max()), trial
         checked |= {(int(k), int(c)) for k, c in zip(at.kind, at.ncode)}
     assert {(surface.FACE, 0), (surface.EDGE, 1), (surface.VERTEX, 2)} <= checked, checked
+
+
+def test_has_regions_only_when_patches_grown_above_the_coplanar_tolerance_are_searched():
+    sphere = objects.load("sphere")
+    assert ObjectModel.from_mesh(sphere, patch_tol_deg=25.0).has_regions      # 46 regions of 320 facets
+    assert not ObjectModel.from_mesh(sphere, patch_tol_deg=0.5).has_regions   # coplanar patches only
+    assert not ObjectModel.from_mesh(objects.load("carton")).has_regions     # patches of flat faces
