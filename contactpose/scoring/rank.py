@@ -18,7 +18,7 @@ from contactpose.solvers.closed_form import fit_poses
 from contactpose.solvers.surface import needs_surface, surface_fit
 from contactpose.types import HypothesisArrays, fit_threshold, outlier_penalty
 
-#: The default method fits this many of its best hypotheses on the surface (solvers.surface).
+#: localize(..., surface=True) fits this many of its best hypotheses on the surface (solvers.surface).
 SURFACE_REFINE = 8
 #: The default method moves the poses of at most this many hypotheses toward the least
 #: full χ² (:func:`polish`), those whose plane χ² is at least POLISH_GAIN below the best.
@@ -145,7 +145,7 @@ def surface_refined(model, contacts, arrays, tolerance, k=SURFACE_REFINE):
         R, t, f = arrays.fit.R[r], arrays.fit.t[r], arrays.facets[r]
         if needs_surface(model, contacts, R, t, f, tolerance):
             fits.append((r, surface_fit(model, contacts, R, t, f, tolerance)))
-    fits = [(r, got) for r, got in fits if got[5] < arrays.chi2[r]]
+    fits = [(r, got) for r, got in fits if got[5] + outlier_penalty(arrays.facets[r:r + 1])[0] < arrays.chi2[r]]
     if not fits:
         return arrays
     rows = np.array([r for r, _ in fits])
