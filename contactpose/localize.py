@@ -343,8 +343,8 @@ def _patch_hypotheses(model, contacts, S, tolerance, prior, deadline=None, progr
     it carries: scoring.rank.fitting_members), re-pose on those facets and take the members
     again (research/design.md)."""
     patches = model.patches
-    angle = tolerance.per_contact_bounds()[1] + float(patches.cone.max())
-    triple = TripleTest(patches.normals, contacts.object_normals, angle)
+    triple = TripleTest(patches.normals, contacts.object_normals, tolerance.per_contact_bounds()[1],
+                        slack=patches.cone)
     _warn_explosion(S, contacts.n, tolerance, model, triple)
     tuples = join_tuples(S, contacts.n, triple, deadline=deadline, progress=progress)
     t0 = None if prior is None else np.broadcast_to(prior.pose[:3, 3], (len(tuples), 3))

@@ -93,26 +93,35 @@ def pose_leaders(model, poses, underdetermined, radius):
 @numba.njit(cache=True)
 def _leaders(v, r2):
     """Greedy grouping in rank order: each row not yet taken leads a group and takes every
-    later free row within sqrt(r2) of it. v : (H, d)  ->  (H,) the leader of each row."""
+    later free row within sqrt(r2) of it. Candidates come from a slab of ±sqrt(r2) along the
+    coordinate of widest spread (a row within the radius lies in it). v : (H, d)  ->  (H,)
+    the leader of each row."""
     h, d = v.shape
     owner = np.full(h, -1)
-    free = np.arange(h)       # rows not yet taken, in rank order (compacted as rows are taken)
-    left = h
-    while left:
-        lead = free[0]
+    if h == 0:
+        return owner
+    spread = np.empty(d)
+    for c in range(d):
+        spread[c] = v[:, c].max() - v[:, c].min()
+    key = v[:, np.argmax(spread)].copy()
+    order = np.argsort(key)
+    sorted_key = key[order]
+    reach = np.sqrt(r2) * (1.0 + 1e-9) + 1e-300
+    for lead in range(h):
+        if owner[lead] >= 0:
+            continue
         owner[lead] = lead
-        keep = 0
-        for e in range(1, left):
-            j = free[e]
+        lo = np.searchsorted(sorted_key, key[lead] - reach)
+        hi = np.searchsorted(sorted_key, key[lead] + reach, side="right")
+        for e in range(lo, hi):
+            j = order[e]
+            if owner[j] >= 0:
+                continue
             dist = 0.0
             for c in range(d):
                 dist += (v[j, c] - v[lead, c]) ** 2
             if dist <= r2:
                 owner[j] = lead
-            else:
-                free[keep] = j
-                keep += 1
-        left = keep
     return owner
 
 

@@ -21,26 +21,37 @@ import numpy as np
 from contactpose.progress import progress_bar
 
 
+def tilt_chord(angle):
+    """|m - n| = 2 sin(θ/2) for unit vectors θ apart (θ capped at π): the most a unit normal
+    tilted by at most ``angle`` can move. angle : float or array."""
+    return 2.0 * np.sin(np.minimum(angle, np.pi) / 2.0)
+
+
 def triple_tolerance(angle_bound):
     """Bound on |det[m_a, m_b, m_c] - det[n_a, n_b, n_c]| when each unit vector m is n tilted
-    by at most ``angle_bound``: det is multilinear, |m - n| <= δ = 2 sin(angle/2), so the
-    change is at most (1 + δ)³ - 1."""
-    delta = 2.0 * np.sin(min(angle_bound, np.pi) / 2.0)
-    return (1.0 + delta) ** 3 - 1.0
+    by at most ``angle_bound``: det[m] - det[n] = det[m_a - n_a, m_b, m_c] + det[n_a, m_b - n_b,
+    m_c] + det[n_a, n_b, m_c - n_c], each term at most |m - n| = δ = 2 sin(angle/2) by
+    Hadamard's inequality (the other two vectors are unit), so the change is at most 3δ.
+    :class:`TripleTest` sums the three δ of units tilted by different bounds."""
+    return 3.0 * tilt_chord(angle_bound)
 
 
 class TripleTest:
     """Handedness test for triples of fingers: pairwise angles cannot tell three normals
     from their mirror image, the triple product can.
 
-    facet_normals : (m, 3); measured : (n, 3) measured object normals (-ñ);
-    angle_bound : per-contact tilt bound (radians).
+    facet_normals : (m, 3) unit normals of the search units; measured : (n, 3) measured
+    object normals (-ñ); angle_bound : per-contact tilt bound (radians); slack : (m,) extra
+    tilt of each unit (a region's cone half-angle: its surface normals lie that far from
+    its normal), or None. A triple passes when its determinants differ by at most the sum
+    of its three units' chords δ (:func:`triple_tolerance`).
     """
 
-    def __init__(self, facet_normals, measured, angle_bound):
+    def __init__(self, facet_normals, measured, angle_bound, slack=None):
         self.facet_normals = facet_normals
         self.measured = measured
-        self.tol = triple_tolerance(angle_bound)
+        extra = np.zeros(len(facet_normals)) if slack is None else np.asarray(slack, dtype=np.float64)
+        self.delta = tilt_chord(angle_bound + extra)
 
 
 @numba.njit(cache=True)
@@ -72,14 +83,14 @@ def join_tuples(S, n, triple=None, *, deadline=None, progress=None):
     m = S[pairs[0]].m
     first, second, cut = getattr(S, "flat", None) or _flat_pairs(S, pairs)
     if triple is None:
-        normals, measured, tol = np.zeros((1, 3)), np.zeros((n, 3)), np.inf
+        normals, measured, delta = np.zeros((1, 3)), np.zeros((n, 3)), np.full(1, np.inf)
     else:
-        normals, measured, tol = triple.facet_normals, triple.measured, triple.tol
+        normals, measured, delta = triple.facet_normals, triple.measured, triple.delta
     normals = np.ascontiguousarray(normals, dtype=np.float64)
     measured = np.ascontiguousarray(measured, dtype=np.float64)
     e0 = pair_of[order[0], order[1]]
     if cut[e0 + 1] - cut[e0] <= START_CHUNK:  # one chunk: the whole tree in one compiled call
-        return _join(first, second, cut, m, order, pair_of, normals, measured, float(tol))
+        return _join(first, second, cut, m, order, pair_of, normals, measured, delta)
     start = np.stack(_directed(first, second, cut, e0, order[0] < order[1]), axis=1).astype(np.int64).reshape(-1, 2)
     rows = [_level_adjacency(first, second, cut, m, order, pair_of, level) for level in range(2, n)]
     parts = []
@@ -87,7 +98,7 @@ def join_tuples(S, n, triple=None, *, deadline=None, progress=None):
         for lo in range(0, len(start), START_CHUNK):
             if any(len(p) for p in parts) and deadline is not None and deadline.passed:
                 break
-            parts.append(_grow_all(start[lo:lo + START_CHUNK], n, rows, order, normals, measured, float(tol)))
+            parts.append(_grow_all(start[lo:lo + START_CHUNK], n, rows, order, normals, measured, delta))
             bar.update(min(START_CHUNK, len(start) - lo))
     nodes = np.concatenate(parts) if parts else np.zeros((0, n), dtype=np.int64)
     out = np.empty((len(nodes), n), dtype=np.int64)
@@ -102,7 +113,7 @@ START_CHUNK = 1024
 ESTIMATE_SAMPLE = 256
 
 
-def _grow_all(start, n, rows, order, normals, measured, tol):
+def _grow_all(start, n, rows, order, normals, measured, delta):
     """Every complete tuple under the start nodes (K, 2): (H, n) int64 in placement order."""
     nodes = np.zeros((len(start), n), dtype=np.int64)
     nodes[:, :2] = start
@@ -110,7 +121,7 @@ def _grow_all(start, n, rows, order, normals, measured, tol):
     for level, (indptr, targets) in enumerate(rows, start=2):
         if not count:
             break
-        nodes, count = _grow(nodes, count, level, indptr, targets, order, normals, measured, tol)
+        nodes, count = _grow(nodes, count, level, indptr, targets, order, normals, measured, delta)
     return nodes[:count]
 
 
@@ -172,7 +183,7 @@ def placement_order(S, n):
 
 
 @numba.njit(cache=True)
-def _join(first, second, cut, m, order, pair_of, normals, measured, tol):
+def _join(first, second, cut, m, order, pair_of, normals, measured, delta):
     """The whole tree T in one compiled pass (level by level over every node), for trees
     with at most START_CHUNK start nodes: as :func:`join_tuples`, without the chunks."""
     n = len(order)
@@ -188,7 +199,7 @@ def _join(first, second, cut, m, order, pair_of, normals, measured, tol):
             e = pair_of[order[b], order[level]]
             src, dst = _directed(first, second, cut, e, order[b] < order[level])
             _adjacency(src, dst, m, indptr[b], targets[b])
-        nodes, count = _grow(nodes, count, level, indptr, targets, order, normals, measured, tol)
+        nodes, count = _grow(nodes, count, level, indptr, targets, order, normals, measured, delta)
     out = np.empty((count, n), dtype=np.int64)
     for c in range(n):
         out[:, order[c]] = nodes[:count, c]
@@ -228,11 +239,12 @@ def _adjacency(src, dst, m, indptr, targets):
 
 
 @numba.njit(cache=True)
-def _grow(nodes, count, level, indptr, targets, order, normals, measured, tol):
+def _grow(nodes, count, level, indptr, targets, order, normals, measured, delta):
     """Place finger order[level] under every node: each facet that the placed finger with
     the fewest candidates admits, kept if every other placed finger admits it too (binary
     search in its sorted row) and every new triple passes."""
     want = _measured_triples(measured, order, level)
+    test = delta[0] < np.inf
     out = np.empty((max(count, 16), nodes.shape[1]), dtype=np.int64)
     k = 0
     for r in range(count):
@@ -245,7 +257,7 @@ def _grow(nodes, count, level, indptr, targets, order, normals, measured, tol):
             facet = targets[a, q]
             if not _admitted(nodes[r], facet, level, a, indptr, targets):
                 continue
-            if tol < np.inf and not _triples_pass(normals, nodes[r], facet, level, want, tol):
+            if test and not _triples_pass(normals, nodes[r], facet, level, want, delta):
                 continue
             if k == len(out):
                 out = _doubled(out)
@@ -281,10 +293,11 @@ def _measured_triples(measured, order, level):
 
 
 @numba.njit(cache=True)
-def _triples_pass(normals, node, facet, level, want, tol):
+def _triples_pass(normals, node, facet, level, want, delta):
     t = 0
     for a in range(level):
         for b in range(a + 1, level):
+            tol = delta[node[a]] + delta[node[b]] + delta[facet]
             if abs(_det3(normals[node[a]], normals[node[b]], normals[facet]) - want[t]) > tol:
                 return False
             t += 1

@@ -7,7 +7,7 @@ import pytest
 
 from contactpose.geometry.metrics import pose_embedding, rms_displacement
 from contactpose.localize import localize
-from contactpose.scoring.classes import DISTINCT_RMS_FRAC, DISTINCT_RMS_SIGMA, distinct_poses
+from contactpose.scoring.classes import DISTINCT_RMS_FRAC, DISTINCT_RMS_SIGMA, _leaders, distinct_poses
 from contactpose.sim import grasps as simulate
 
 NOISE = dict(position_noise=0.0005, normal_noise_deg=1.0)
@@ -24,6 +24,29 @@ def test_embedding_distances_are_rms_displacements(rock_model):
         direct = np.sqrt(np.mean(np.sum((moved - moved[a]) ** 2, axis=2), axis=1))
         assert np.allclose(np.linalg.norm(e - e[a], axis=1), direct, atol=1e-12)
         assert np.allclose(rms_displacement(poses, poses[a], *rock_model.class_moments), direct, atol=1e-9)
+
+
+def plain_greedy(v, r2):
+    """The grouping by its definition: rows in order, each free one leads and takes every
+    later free row within sqrt(r2)."""
+    owner = -np.ones(len(v), dtype=np.int64)
+    for lead in range(len(v)):
+        if owner[lead] < 0:
+            near = (owner < 0) & (np.sum((v - v[lead]) ** 2, axis=1) <= r2)
+            owner[near] = lead
+    return owner
+
+
+@pytest.mark.parametrize("spread", [0.02, 1.0])
+def test_leaders_equal_plain_greedy(spread):
+    """The slab search of _leaders groups exactly as the definition does: clustered 13-D
+    rows (near-copies around a few centres) and scattered ones, some exactly on the radius."""
+    rng = np.random.default_rng(5)
+    centres = rng.normal(size=(40, 13))
+    v = centres[rng.integers(0, 40, 3000)] + spread * rng.normal(size=(3000, 13))
+    v[1] = v[0] + np.r_[0.3, np.zeros(12)]        # at the radius exactly
+    for r in (0.05, 0.3, 2.0):
+        assert np.array_equal(_leaders(v, r * r), plain_greedy(v, r * r))
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3])

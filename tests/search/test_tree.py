@@ -162,12 +162,14 @@ def test_paper_bounds_and_direction_only_shrink_the_set(rock_model):
 
 
 def triple_reference(tuples, facet_normals, measured, tol):
-    """Rows whose every finger triple a < b < c has |det[n_a, n_b, n_c] - det[m_a, m_b, m_c]| <= tol."""
+    """Rows whose every finger triple a < b < c has |det[n_a, n_b, n_c] - det[m_a, m_b, m_c]| <= tol
+    (a scalar, or (m,) per unit: the triple's three values summed)."""
     keep = np.ones(len(tuples), dtype=bool)
     for a, b, c in itertools.combinations(range(tuples.shape[1]), 3):
         got = np.linalg.det(facet_normals[tuples[:, [a, b, c]]])
         want = np.linalg.det(measured[[a, b, c]])
-        keep &= np.abs(got - want) <= tol
+        allowed = tol if np.isscalar(tol) else tol[tuples[:, [a, b, c]]].sum(axis=1)
+        keep &= np.abs(got - want) <= allowed
     return tuples[keep]
 
 
@@ -200,6 +202,30 @@ def test_join_with_triple_test_equals_filtered_brute_force(tiny_models, name, n)
         assert as_set(back) == as_set(got)
     if name == "ico20":
         assert removed > 0   # the test does cut mirror-image tuples here (the box has none to cut)
+
+
+def test_triple_test_with_unit_slack_equals_filtered_brute_force(tiny_models):
+    """Units tilted by their own slack (a region's cone): the tree keeps exactly the tuples
+    whose triples differ by at most the sum of their units' chords 2 sin((bound + slack)/2),
+    and a true tuple whose normals lie within its units' slack survives."""
+    model = tiny_models["ico20"]
+    rng = np.random.default_rng(9)
+    slack = rng.uniform(0.0, np.radians(12.0), model.num_facets)
+    pn, nd = NOISES[1]
+    removed = 0
+    for _ in range(4):
+        g = simulate.grasp(model, rng, n=4, position_noise=pn, normal_noise_deg=nd, noise="bounded")
+        tol = Tolerance.from_noise(pn, nd)
+        bound = tol.per_contact_bounds()[1]
+        S = admissible_pairs(model, pair_conditions(g.contacts), tol)
+        chords = 2.0 * np.sin((bound + slack) / 2.0)
+        want = triple_reference(dense_brute_force(S, 4, model.num_facets), model.planes.normals,
+                                g.contacts.object_normals, chords)
+        got = join_tuples(S, 4, TripleTest(model.planes.normals, g.contacts.object_normals, bound, slack=slack))
+        assert np.array_equal(sorted_rows(got), sorted_rows(want))
+        assert tuple(g.facets) in as_set(got)
+        removed += len(dense_brute_force(S, 4, model.num_facets)) - len(want)
+    assert removed > 0
 
 
 def test_triple_tolerance_bounds_tilted_determinants():
