@@ -14,6 +14,7 @@ its facet triangle. ``method="paper"``: the paper as published — vertex-only
 
 from __future__ import annotations
 
+import dataclasses
 import time
 import warnings
 from itertools import combinations
@@ -37,6 +38,7 @@ from contactpose.solvers.lm import fit_lm_all
 from contactpose.types import (
     DEFAULT_POSITION_NOISE_FRAC,
     DEFAULT_REFINE,
+    KEEP,
     METHODS,
     OUTLIER_PENALTY,
     ROBUST,
@@ -61,15 +63,17 @@ UNITS_ERROR_RATIO = 10.0
 #: when every finger pair admits more facet pairs than EXPLOSION_CHECK_PAIRS.
 EXPLOSION_TUPLES = 1e6
 EXPLOSION_CHECK_PAIRS = 10_000
+#: With keep="fitting", a search none of whose hypotheses fits within noise lists its best this many.
+POOR_FIT_LISTED = 10
 
-__all__ = ["classify", "drop_blocked", "find_pairs", "join_hypotheses", "localize", "pose_hypotheses",
+__all__ = ["classify", "drop_blocked", "find_pairs", "join_hypotheses", "listed_rows", "localize", "pose_hypotheses",
            "rank_hypotheses", "refine_hypotheses", "search"]
 
 
 def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prior=None,
              method="fast", solver=None, top=None, model_error=0.0, max_outliers=0, robust="huber",
              refine=DEFAULT_REFINE, samples=0, seed=None, sample_top=1, finger_radius=None,
-             time_limit=DEFAULT_TIME_LIMIT, progress=None, distinct=True, surface=False):
+             time_limit=DEFAULT_TIME_LIMIT, progress=None, distinct=True, surface=False, keep="fitting"):
     """Find every admissible finger-to-facet assignment and the object pose behind each.
 
     model : ObjectModel; contacts : Contacts (world frame); position_noise : per-axis σ of
@@ -101,8 +105,14 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
     facets). Off by default: it costs 5-15 ms per refined hypothesis. The samples use the
     surface contact model's posterior with ``surface`` or on a model of surface regions
     (``model.has_regions``), where the facet posterior is far too narrow (research/surface.md).
+    keep : "fitting" lists, of the distinct poses, the best and those that fit the contacts
+    within noise (the pose classes' members; the best POOR_FIT_LISTED when none fits, all of
+    them at the time limit); "all" lists every distinct pose. ``result.num_hypotheses``
+    counts them all either way. "fast" with distinct poses only.
     """
     method, solver = _check_options(method, solver, top, contacts, prior)
+    if keep not in KEEP:
+        raise ContactPoseError(f"keep must be one of {KEEP}, got {keep!r}")
     deadline = Deadline(_check_time_limit(time_limit))
     if robust not in ROBUST:
         raise ContactPoseError(f"robust must be one of {ROBUST}, got {robust!r}")
@@ -117,10 +127,10 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
     arrays, timing = search(model, contacts, tolerance, method=method, solver=pose_solver, prior=prior,
                             deadline=deadline, progress=progress)
     for dropped in _outlier_sets(contacts.n, max_outliers):
-        keep = np.setdiff1d(np.arange(contacts.n), dropped)
-        sub, sub_timing = search(model, contacts.permuted(keep), tolerance, method=method, solver=pose_solver,
+        fingers = np.setdiff1d(np.arange(contacts.n), dropped)
+        sub, sub_timing = search(model, contacts.permuted(fingers), tolerance, method=method, solver=pose_solver,
                                  prior=prior, deadline=deadline, progress=progress)
-        arrays = arrays.merged(sub.widened(keep, contacts.n, len(dropped) * OUTLIER_PENALTY))
+        arrays = arrays.merged(sub.widened(fingers, contacts.n, len(dropped) * OUTLIER_PENALTY))
         timing = {k: timing[k] + sub_timing[k] for k in timing}
     widened = ""
     if len(arrays.cost) == 0 and method == "fast":
@@ -151,6 +161,8 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
         if note:
             hint = f"{hint}; {note}" if hint else note
     num = len(arrays.cost)
+    if keep == "fitting" and distinct and method == "fast" and status != "time_limit":
+        arrays, classes = _plausible(arrays, classes)
     if top is not None:
         arrays = arrays.take(slice(0, top))
     timing["rank"] += time.perf_counter() - classes_start
@@ -355,6 +367,24 @@ def _patch_hypotheses(model, contacts, S, tolerance, prior, deadline=None, progr
         facets = ranking.fitting_members(model, contacts, tuples, fit.R, fit.t, tolerance)
         normals, offsets, centres = model.planes.normals[facets], model.planes.offsets[facets], model.centroids[facets]
     return facets
+
+
+def listed_rows(classes, count):
+    """Ranks that keep="fitting" lists of ``count`` ranked distinct poses with these pose
+    classes: the best and the classes' members (those that fit within noise), in rank order;
+    the best POOR_FIT_LISTED when no class holds any.  ->  (K,) int"""
+    if not classes:
+        return np.arange(min(POOR_FIT_LISTED, count))
+    return np.union1d([0], np.concatenate([c.members for c in classes]))
+
+
+def _plausible(arrays, classes):
+    """The hypotheses keep="fitting" lists (:func:`listed_rows`), with the classes' ranks
+    moved to that list. -> (HypothesisArrays, classes)"""
+    rows = listed_rows(classes, len(arrays.cost))
+    moved = [dataclasses.replace(c, members=np.searchsorted(rows, c.members), best=int(np.searchsorted(rows, c.best)))
+             for c in classes]
+    return arrays.take(rows), moved
 
 
 def _widen(model, contacts, arrays, tolerance, solver, prior, deadline, progress, timing):

@@ -19,6 +19,8 @@ from contactpose.errors import PriorError
 METHODS = ("fast", "paper")
 SOLVERS = ("closed-form", "lm", "factor-graph")
 ROBUST = ("huber", "cauchy", "none")
+#: localize(..., keep=...): list the hypotheses that fit within noise, or every distinct pose.
+KEEP = ("fitting", "all")
 #: solver="factor-graph" refines this many of the best closed-form hypotheses (0: all).
 DEFAULT_REFINE = 20
 #: Probability that a correct hypothesis passes the fit test (χ² quantile, 3 dof per contact).
@@ -351,7 +353,7 @@ class PoseClass:
     """Hypotheses that place the object's surface the same way (ADD-S below
     SAME_CLASS_ADDS_FRAC of the diameter): symmetric twins count as one placement.
 
-    members : hypothesis ranks (in the full ranking); best : rank of its best member;
+    members : hypothesis ranks (in the listed ranking, before top); best : rank of its best member;
     pose : (4, 4) its best pose; chi2 : its best χ²; probability : share of the
     likelihood exp(-χ²/2) summed over members, normalised over classes.
     """

@@ -74,7 +74,7 @@ from contactpose.geometry import metrics
 from contactpose.geometry.raycast import raycaster
 from contactpose.geometry.sampling import perturb_normals
 from contactpose.io.modelfile import FORMAT_VERSION
-from contactpose.localize import find_pairs, localize
+from contactpose.localize import find_pairs, listed_rows, localize
 from contactpose.model.object_model import ObjectModel, merged_mesh
 from contactpose.model.table import estimate_bytes
 from contactpose.scoring.infacet import within_noise
@@ -343,17 +343,23 @@ def score(s, poses, truth, cfg, max_anchors=1):
 
 
 def ours(s, contacts, truth, noise, cfg, **options):
-    """localize, scored; warnings (the explosion estimate) recorded, not printed."""
+    """localize, scored on the hypotheses the default listing returns (keep="fitting",
+    localize.listed_rows); the result keeps every distinct pose, for truth_columns. Warnings
+    (the explosion estimate) are recorded, not printed."""
     start = time.perf_counter()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        r = localize(s.model, contacts, **noise, **options)
+        r = localize(s.model, contacts, **noise, **options, keep="all")
     wall = time.perf_counter() - start
-    row = {"ran": True, "note": "", "status": r.status, "num_hypotheses": r.num_hypotheses, "classes": len(r.classes),
+    poses = r.hypotheses.arrays.poses
+    if r.method == "fast" and r.status != "time_limit":
+        poses = poses[listed_rows(r.classes, len(poses))]
+    row = {"ran": True, "note": "", "status": r.status, "num_hypotheses": r.num_hypotheses,
+           "num_returned": len(poses), "classes": len(r.classes),
            "best_underdetermined": bool(r.best is not None and r.best.underdetermined),
            "widened": "widened" in r.hint, "warned_explosion": any("explode" in str(w.message) for w in caught),
            "time_online_ms": 1e3 * r.timing["total"], "time_wall_ms": 1e3 * wall}
-    row.update(score(s, r.hypotheses.arrays.poses, truth, cfg, cfg["max_anchors"]))
+    row.update(score(s, poses, truth, cfg, cfg["max_anchors"]))
     return r, row
 
 
@@ -492,6 +498,8 @@ def summary_row(c, sel, obj, frac, method, split):
         row[f"status_{st}"] = int(np.sum(c["status"][ran] == st)) if method in ("fast", "paper") else ""
     row["no_hypothesis"] = float(np.mean(c["num_hypotheses"][ran] == 0)) if k and method in ("fast", "paper") else np.nan
     row["hypotheses_median"] = pct(c["num_hypotheses"][ran], 50) if method in ("fast", "paper") else np.nan
+    returned = c.get("num_returned", c["num_hypotheses"])   # runs before keep="fitting" listed every hypothesis
+    row["returned_median"] = pct(returned[ran], 50) if method in ("fast", "paper") else np.nan
     row["online_ms_median"], row["online_ms_p95"] = pct(c["time_online_ms"][ran], 50), pct(c["time_online_ms"][ran], 95)
     row["redraws"] = int(np.nansum(c["redraws"][sel]))
     row["found_inexact"] = int(np.sum(c["found_exact"][ran] == 0))
@@ -522,7 +530,7 @@ def summary_markdown(rows, models, cfg_text):
              "(median / p90; for symmetric objects the ADD-S in mm is the fair one). no-hyp: no hypothesis. "
              "face / e-v: top-1 ADD-S of the face-only grasps and of those with an edge or vertex contact (grasps).", "",
              "| object | sym. | r (% diam.) | grasps | found % | top-1 ADD-S % | top-1 strict % | rot med / p90 (°) | "
-             "trans med / p90 (mm) | ADD-S med / p90 (mm) | no-hyp % | hyp. median | online med / p95 (ms) | "
+             "trans med / p90 (mm) | ADD-S med / p90 (mm) | no-hyp % | hyp. found / listed (median) | online med / p95 (ms) | "
              "face (n) / e-v (n) top-1 % |",
              "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
     for obj in objs:
@@ -537,7 +545,8 @@ def summary_markdown(rows, models, cfg_text):
                 f"{fmt(r['rot_err_deg_median'], '.1f')} / {fmt(r['rot_err_deg_p90'], '.0f')} | "
                 f"{fmt(r['trans_err_mm_median'], '.1f')} / {fmt(r['trans_err_mm_p90'], '.0f')} | "
                 f"{fmt(r['adds_mm_median'], '.1f')} / {fmt(r['adds_mm_p90'], '.0f')} | "
-                f"{fmt(r['no_hypothesis'], '.0f', 100)} | {fmt(r['hypotheses_median'], '.0f')} | "
+                f"{fmt(r['no_hypothesis'], '.0f', 100)} | {fmt(r['hypotheses_median'], '.0f')} / "
+                f"{fmt(r['returned_median'], '.0f')} | "
                 f"{fmt(r['online_ms_median'], '.0f')} / {fmt(r['online_ms_p95'], '.0f')} | "
                 f"{fmt(f['top1_adds'], '.0f', 100)} ({f['grasps']}) / {fmt(e['top1_adds'], '.0f', 100)} ({e['grasps']}) |")
     lines += ["", "## All objects, by radius (default method)", "",

@@ -464,12 +464,12 @@ def test_result_to_dict_round_trips_through_json(models, box_model):
 def test_top_truncates_the_ranked_list(rock_model):
     rng = np.random.default_rng(12)
     g = simulate.grasp(rock_model, rng, n=4, noise="bounded", **NOISE)
-    full = localize(rock_model, g.contacts, **NOISE)
+    full = localize(rock_model, g.contacts, **NOISE, keep="all")
     assert len(full.hypotheses) > 5
     costs = [h.cost for h in full.hypotheses]
     assert costs == sorted(costs)
     for k in (1, 3, len(full.hypotheses) + 10):
-        r = localize(rock_model, g.contacts, top=k, **NOISE)
+        r = localize(rock_model, g.contacts, top=k, **NOISE, keep="all")
         assert len(r.hypotheses) == min(k, len(full.hypotheses))
         assert r.num_hypotheses == full.num_hypotheses and r.status == full.status
         for a, b in zip(r.hypotheses, full.hypotheses):
@@ -640,3 +640,52 @@ def test_recall_facet_level_search_carton(carton_model):
     missed = [i for i, g in enumerate(recall_grasps(model, 300))
               if not has_row(fast_hypotheses(model, g.contacts, tolerance), g.facets)]
     assert missed == []
+
+
+@pytest.mark.parametrize("seed", [3, 4, 5])
+def test_keep_fitting_lists_the_best_and_the_hypotheses_that_fit(rock_model, seed):
+    """keep="fitting" (the default) lists, of keep="all"'s distinct poses, the best and
+    exactly those the fit test passes (scoring.infacet.within_noise on keep="all"'s list), in
+    rank order; its pose classes point at the same poses, and the counts stay those of all."""
+    from contactpose.scoring.infacet import within_noise
+
+    model = rock_model
+    g = simulate.grasp(model, np.random.default_rng(seed), n=4, position_noise=0.0008, normal_noise_deg=2.0)
+    noise = dict(position_noise=0.0008, normal_noise_deg=2.0)
+    every = localize(model, g.contacts, **noise, keep="all")
+    fitting = localize(model, g.contacts, **noise)
+    tol = Tolerance.from_noise(0.0008, 2.0)
+    fits = within_noise(model, g.contacts, every.hypotheses.arrays, tol, fit_threshold(4))
+    rows = np.union1d([0], np.flatnonzero(fits))
+    assert len(every.hypotheses) > len(rows) >= 1                      # something is left out
+    assert np.array_equal(fitting.hypotheses.arrays.facets, every.hypotheses.arrays.facets[rows])
+    assert fitting.num_hypotheses == every.num_hypotheses and fitting.status == every.status
+    for mine, theirs in zip(fitting.classes, every.classes, strict=True):
+        assert np.array_equal(fitting.hypotheses.arrays.poses[mine.members], every.hypotheses.arrays.poses[theirs.members])
+        assert np.array_equal(fitting.hypotheses[mine.best].pose, mine.pose)
+
+
+def test_keep_fitting_lists_the_best_few_when_nothing_fits(rock_model):
+    """Contacts three times noisier than stated: the best does not fit (poor_fit). When no
+    hypothesis fits at all, the best POOR_FIT_LISTED of all distinct poses are listed."""
+    from contactpose.localize import POOR_FIT_LISTED
+
+    empty = 0
+    for seed in (2, 4, 7, 8):
+        g = simulate.grasp(rock_model, np.random.default_rng(seed), n=4, position_noise=3 * POSITION_NOISE,
+                           normal_noise_deg=3 * NORMAL_NOISE_DEG)
+        every = localize(rock_model, g.contacts, **NOISE, keep="all")
+        fitting = localize(rock_model, g.contacts, **NOISE)
+        assert fitting.status == every.status == "poor_fit" and len(every.hypotheses) > POOR_FIT_LISTED
+        if fitting.classes:
+            rows = np.union1d([0], np.concatenate([c.members for c in every.classes]))
+        else:
+            rows, empty = np.arange(POOR_FIT_LISTED), empty + 1
+        assert np.array_equal(fitting.hypotheses.arrays.facets, every.hypotheses.arrays.facets[rows])
+    assert empty
+
+
+def test_keep_is_checked(rock_model):
+    g = simulate.grasp(rock_model, np.random.default_rng(1), n=4, **NOISE)
+    with pytest.raises(ContactPoseError, match="keep must be one of"):
+        localize(rock_model, g.contacts, **NOISE, keep="some")

@@ -13,8 +13,8 @@ from contactpose.cli.common import (
     warn_in_vain,
 )
 from contactpose.io import jsonfiles
-from contactpose.localize import DEFAULT_TIME_LIMIT, localize
-from contactpose.types import METHODS, ROBUST, SOLVERS
+from contactpose.localize import DEFAULT_TIME_LIMIT, POOR_FIT_LISTED, localize
+from contactpose.types import KEEP, METHODS, ROBUST, SOLVERS
 
 #: The robust kernel when --robust is not given (None in the parser, to tell a given value).
 DEFAULT_ROBUST = library_default(localize, "robust")
@@ -43,6 +43,9 @@ def register(sub):
     p.add_argument("--samples", type=int, default=0, metavar="N", help="posterior samples of the best pose (emcee)")
     p.add_argument("--seed", type=int, metavar="S", help="seed for --samples (default: a fresh one each run)")
     p.add_argument("--top", type=int, metavar="K", help="write only the best K hypotheses with -o (default: all)")
+    p.add_argument("--keep", choices=KEEP, default="fitting",
+                   help="hypotheses to list: fitting (the best and those that fit within noise; the best "
+                        f"{POOR_FIT_LISTED} when none fits) or all distinct poses (default: fitting)")
     p.add_argument("--fix-normals", action="store_true", help="with a mesh: re-wind its faces outward first")
     p.add_argument("--time-limit", type=float, default=DEFAULT_TIME_LIMIT, metavar="SEC",
                    help="seconds the search may take; past them the hypotheses found so far come back with "
@@ -61,6 +64,10 @@ def warn_options_in_vain(args):
         warn_in_vain("--robust", "without --solver factor-graph or --samples")
     if args.surface and (args.method == "paper" or args.solver not in (None, "closed-form")):
         warn_in_vain("--surface", "with --method paper or --solver lm|factor-graph (closed form only)")
+    if args.keep != "fitting" and not args.output:
+        warn_in_vain("--keep", "without -o (the printed result shows the best hypothesis only)")
+    if args.keep != "fitting" and args.method == "paper":
+        warn_in_vain("--keep", "with --method paper (it lists every hypothesis)")
     if args.top is not None and not args.output:
         warn_in_vain("--top", "without -o (the printed result shows the best hypothesis only)")
     if args.fix_normals and is_model_file(args.model):
@@ -77,7 +84,7 @@ def run(args):
                       solver=args.solver, top=args.top, robust=args.robust or DEFAULT_ROBUST,
                       max_outliers=args.max_outliers, samples=args.samples, seed=args.seed,
                       finger_radius=args.finger_radius, time_limit=args.time_limit or None,
-                      surface=args.surface)
+                      surface=args.surface, keep=args.keep)
     warn_options_in_vain(args)  # after the checks: bad input gets its one error line only
     if args.output:
         jsonfiles.write_json(args.output, result.to_dict())

@@ -100,6 +100,23 @@ def test_localize_prints_status_and_writes_json(tmp_path, capsys, banana_npz, ki
     assert g.facets.tolist() in [h["facets"] for h in data["hypotheses"]]
 
 
+def test_localize_keep_all_writes_every_distinct_pose(tmp_path, capsys, rock_model):
+    """--keep all writes what localize(keep="all") lists, the default what keep="fitting" does."""
+    contacts_path, g = grasp_file(tmp_path, rock_model, seed=5)
+    npz = tmp_path / "rock.npz"
+    rock_model.save(npz)
+    for keep in ("all", "fitting"):
+        out = tmp_path / f"{keep}.json"
+        extra = ["--keep", keep] if keep == "all" else []
+        assert main(["localize", str(npz), "--contacts", contacts_path, *NOISE_ARGS, *extra, "-o", str(out)]) == 0
+        api = localize(rock_model, g.contacts, position_noise=POSITION_NOISE, normal_noise_deg=NORMAL_NOISE_DEG,
+                       keep=keep)
+        data = json.loads(out.read_text())
+        assert [h["facets"] for h in data["hypotheses"]] == [h.facets.tolist() for h in api.hypotheses]
+        assert data["num_returned"] == len(api.hypotheses) and data["num_hypotheses"] == api.num_hypotheses
+    capsys.readouterr()
+
+
 def test_localize_with_prior_paper_method_and_top(tmp_path, capsys):
     model = ObjectModel.from_mesh(objects.load("banana"))
     contacts_path, g = grasp_file(tmp_path, model, seed=4)
