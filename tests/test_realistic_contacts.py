@@ -86,3 +86,8 @@ def test_quick_run_writes_every_output(tmp_path):
     (out / "realistic_contacts.png").unlink()
     assert rc.main(["--quick", "--plot-only", "--out", str(tmp_path)]) == 0
     assert (out / "realistic_contacts.png").exists()
+    # a run against itself: every figure of the side-by-side table is unchanged
+    assert run_all.load("before_after").main([str(out), str(out)]) == 0
+    table = [line for line in (out / "before_after.md").read_text().splitlines() if "→" in line]
+    assert table and all(len(set(cell.split(" → "))) == 1 for line in table for cell in line.split(" | ")[2:-1]
+                         if "→" in cell)
