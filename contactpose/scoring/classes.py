@@ -7,8 +7,8 @@ exp(-χ²/2) summed over members, or from the factor graph's Laplace evidence.
 
 from __future__ import annotations
 
-import numba
 import numpy as np
+from scipy.spatial import cKDTree
 
 from contactpose.geometry.metrics import SAME_CLASS_ADDS_FRAC, adds_many, pose_embedding, rms_displacement
 from contactpose.types import PoseClass, fit_threshold
@@ -90,38 +90,23 @@ def pose_leaders(model, poses, underdetermined, radius):
     return _leaders(np.ascontiguousarray(v), radius * radius)
 
 
-@numba.njit(cache=True)
 def _leaders(v, r2):
     """Greedy grouping in rank order: each row not yet taken leads a group and takes every
-    later free row within sqrt(r2) of it. Candidates come from a slab of ±sqrt(r2) along the
-    coordinate of widest spread (a row within the radius lies in it). v : (H, d)  ->  (H,)
-    the leader of each row."""
-    h, d = v.shape
-    owner = np.full(h, -1)
-    if h == 0:
+    later free row within sqrt(r2) of it, found by a k-d tree (the poses lie near a 6-D
+    manifold of the 13-D embedding, where a tree prunes and a grid does not).
+    v : (H, d)  ->  (H,) the leader of each row."""
+    owner = np.full(len(v), -1)
+    if not len(v):
         return owner
-    spread = np.empty(d)
-    for c in range(d):
-        spread[c] = v[:, c].max() - v[:, c].min()
-    key = v[:, np.argmax(spread)].copy()
-    order = np.argsort(key)
-    sorted_key = key[order]
-    reach = np.sqrt(r2) * (1.0 + 1e-9) + 1e-300
-    for lead in range(h):
+    tree = cKDTree(v)
+    reach = np.sqrt(r2) * (1.0 + 1e-9)       # the exact test below decides at the boundary
+    for lead in range(len(v)):
         if owner[lead] >= 0:
             continue
+        near = np.asarray(tree.query_ball_point(v[lead], reach), dtype=np.int64)
+        near = near[owner[near] < 0]
+        owner[near[np.sum((v[near] - v[lead]) ** 2, axis=1) <= r2]] = lead
         owner[lead] = lead
-        lo = np.searchsorted(sorted_key, key[lead] - reach)
-        hi = np.searchsorted(sorted_key, key[lead] + reach, side="right")
-        for e in range(lo, hi):
-            j = order[e]
-            if owner[j] >= 0:
-                continue
-            dist = 0.0
-            for c in range(d):
-                dist += (v[j, c] - v[lead, c]) ** 2
-            if dist <= r2:
-                owner[j] = lead
     return owner
 
 

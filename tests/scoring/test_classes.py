@@ -39,7 +39,7 @@ def plain_greedy(v, r2):
 
 @pytest.mark.parametrize("spread", [0.02, 1.0])
 def test_leaders_equal_plain_greedy(spread):
-    """The slab search of _leaders groups exactly as the definition does: clustered 13-D
+    """The k-d tree search of _leaders groups exactly as the definition does: clustered 13-D
     rows (near-copies around a few centres) and scattered ones, some exactly on the radius."""
     rng = np.random.default_rng(5)
     centres = rng.normal(size=(40, 13))
