@@ -197,7 +197,7 @@ def search(model, contacts, tolerance, *, method="fast", solver=None, prior=None
     clock.append(time.perf_counter())
     tree_deadline = Deadline(None if deadline.seconds is None else TREE_SHARE * deadline.remaining())
     facets = join_hypotheses(model, contacts, S, tolerance, method=method, prior=prior, deadline=tree_deadline,
-                             progress=progress)
+                             progress=progress, members_deadline=deadline)
     deadline.hit |= tree_deadline.hit
     clock.append(time.perf_counter())
     timing = dict(zip(("pairs", "tree"), np.diff(clock).tolist()), pose=0.0, rank=0.0)
@@ -241,18 +241,22 @@ def find_pairs(model, contacts, tolerance, *, method="fast"):
                             patches=fast and model.patch_table is not None)
 
 
-def join_hypotheses(model, contacts, S, tolerance, *, method="fast", prior=None, deadline=None, progress=None):
+def join_hypotheses(model, contacts, S, tolerance, *, method="fast", prior=None, deadline=None, progress=None,
+                    members_deadline=None):
     """The tree T over S_ij: facet tuples (H, n) int, one finger per column.
 
     "fast" joins level by level with the handedness test on triples (on patches, one
     tuple per patch tuple: see :func:`_patch_hypotheses`); "paper" node by node (§3.2).
+    deadline : the tree's progress.Deadline; members_deadline : the one the patch tuples'
+    member choice checks between chunks of POSE_CHUNK (default: deadline).
     Warns when the pair sets predict more than EXPLOSION_TUPLES tuples (search.tree.expected_tuples).
     """
     if method == "paper":
         _warn_explosion(S, contacts.n, tolerance, model)
         return join_tuples_paper(S, contacts.n, deadline=deadline, progress=progress)
     if model.patch_table is not None:
-        return _patch_hypotheses(model, contacts, S, tolerance, prior, deadline, progress)
+        return _patch_hypotheses(model, contacts, S, tolerance, prior, deadline, progress,
+                                 deadline if members_deadline is None else members_deadline)
     triple = TripleTest(model.planes.normals, contacts.object_normals, tolerance.per_contact_bounds()[1])
     _warn_explosion(S, contacts.n, tolerance, model, triple)
     return join_tuples(S, contacts.n, triple, deadline=deadline, progress=progress)
@@ -349,16 +353,27 @@ def classify(model, contacts, arrays, tolerance, *, method="fast", deadline=None
 
 # ----------------------------------------------------------------- helpers ---
 
-def _patch_hypotheses(model, contacts, S, tolerance, prior, deadline=None, progress=None):
-    """Facet tuples from the patch-level tree, one per patch tuple: pose it on the patch
-    planes, give each contact the member facet that fits it best (nearest, with the normal
-    it carries: scoring.rank.fitting_members), re-pose on those facets and take the members
-    again (research/design.md)."""
+def _patch_hypotheses(model, contacts, S, tolerance, prior, deadline=None, progress=None, members_deadline=None):
+    """Facet tuples from the patch-level tree, one per patch tuple, their members chosen
+    POSE_CHUNK tuples at a time until members_deadline passes (:func:`_member_facets`)."""
     patches = model.patches
     triple = TripleTest(patches.normals, contacts.object_normals, tolerance.per_contact_bounds()[1],
                         slack=patches.cone)
     _warn_explosion(S, contacts.n, tolerance, model, triple)
     tuples = join_tuples(S, contacts.n, triple, deadline=deadline, progress=progress)
+    parts = []
+    for lo in range(0, max(len(tuples), 1), POSE_CHUNK):
+        if lo and members_deadline is not None and members_deadline.passed:
+            break
+        parts.append(_member_facets(model, contacts, tuples[lo:lo + POSE_CHUNK], tolerance, prior))
+    return np.concatenate(parts)
+
+
+def _member_facets(model, contacts, tuples, tolerance, prior):
+    """Pose patch tuples (H, n) on the patch planes, give each contact the member facet that
+    fits it best (nearest, with the normal it carries: scoring.rank.fitting_members), re-pose
+    on those facets and take the members again (research/design.md). -> (H, n) int facets"""
+    patches = model.patches
     t0 = None if prior is None else np.broadcast_to(prior.pose[:3, 3], (len(tuples), 3))
     normals, offsets, centres = patches.normals[tuples], patches.offsets[tuples], patches.centres[tuples]
     for _ in range(2):

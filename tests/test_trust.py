@@ -2,6 +2,7 @@
 visible search, symmetry said out loud, hints that name the likely mistake."""
 
 import fcntl
+import importlib
 import os
 import pty
 import select
@@ -17,8 +18,9 @@ import pytest
 
 from contactpose.contacts import Contacts, Tolerance
 from contactpose.errors import ContactPoseError
-from contactpose.localize import find_pairs, localize
+from contactpose.localize import find_pairs, join_hypotheses, localize
 from contactpose.model import ObjectModel
+from contactpose.progress import Deadline
 from contactpose.scoring.infacet import within_noise
 from contactpose.scoring.status import ambiguous, status
 from contactpose.search.tree import expected_tuples, join_tuples
@@ -100,6 +102,24 @@ def test_time_limit_returns_what_was_found_and_says_so(rock1k):
         localize(rock1k, g.contacts, **NOISE, time_limit=0)
 
 
+def test_region_member_choice_stops_at_the_search_deadline(monkeypatch):
+    """The member facets of region tuples are chosen a chunk at a time: without a deadline
+    the chunks give the facets of one pass; once the search's deadline has passed, only the
+    first chunk is chosen and the deadline records the cut (a YCB mustard grasp ran 126 s
+    past its 60 s limit before)."""
+    model = ObjectModel.from_mesh(objects.load("banana512"), patch_tol_deg=10.0, facet_pairs=False)
+    g = simulate.grasp(model, np.random.default_rng(1), n=4, **NOISE)
+    tol = Tolerance.from_noise(0.0005, 3.0)
+    S = find_pairs(model, g.contacts, tol)
+    whole = join_hypotheses(model, g.contacts, S, tol)
+    monkeypatch.setattr(importlib.import_module("contactpose.localize"), "POSE_CHUNK", 7)
+    assert len(whole) > 7 and np.array_equal(join_hypotheses(model, g.contacts, S, tol), whole)
+    passed = Deadline(1e-9)
+    time.sleep(1e-3)
+    cut = join_hypotheses(model, g.contacts, S, tol, members_deadline=passed)
+    assert np.array_equal(cut, whole[:7]) and passed.hit
+
+
 def test_paper_method_honours_the_time_limit(rock1k):
     g = simulate.grasp(rock1k, np.random.default_rng(2), n=4, **NOISE)
     start = time.perf_counter()
@@ -129,6 +149,7 @@ SLOW_SEARCH = """
 import numpy as np, warnings
 warnings.simplefilter("ignore")
 from contactpose.model import ObjectModel
+from contactpose.progress import Deadline
 from contactpose.sim import objects, grasps
 from contactpose.localize import localize
 m = ObjectModel.from_mesh(objects.load("rock1k"))
