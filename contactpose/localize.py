@@ -55,6 +55,9 @@ DEFAULT_TIME_LIMIT = 60.0
 WIDEN_SCHEDULE = (1.5, 2.0)
 #: Share of the time left that the tree may take; the poses and ranking get the rest.
 TREE_SHARE = 0.25
+#: Seconds the distinct-pose grouping may always take, even once the time limit has passed;
+#: past both, the rows not yet grouped are listed as they are (status "time_limit").
+GROUPING_GRACE = 2.0
 #: Hypotheses posed and ranked at a time (the grain of their deadline checks).
 POSE_CHUNK = 65_536
 #: Contacts spread wider than this many object diameters are an input error (units).
@@ -142,13 +145,13 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
     assignments = len(arrays.cost)
     if distinct and method == "fast":
         distinct_start = time.perf_counter()
-        arrays = distinct_poses(model, arrays, tolerance.position_noise)[0]
+        arrays = _distinct(model, arrays, tolerance, deadline)
         timing["rank"] += time.perf_counter() - distinct_start
     if surface and distinct and method == "fast" and solver == "closed-form":
         surface_start = time.perf_counter()
         arrays = ranking.surface_refined(model, contacts, arrays, tolerance)
         if distinct:
-            arrays = distinct_poses(model, arrays, tolerance.position_noise)[0]
+            arrays = _distinct(model, arrays, tolerance, deadline)
         timing["pose"] += time.perf_counter() - surface_start
     rescue = ""
     if solver == "factor-graph":
@@ -382,6 +385,15 @@ def _member_facets(model, contacts, tuples, tolerance, prior):
         facets = ranking.fitting_members(model, contacts, tuples, fit.R, fit.t, tolerance)
         normals, offsets, centres = model.planes.normals[facets], model.planes.offsets[facets], model.centroids[facets]
     return facets
+
+
+def _distinct(model, arrays, tolerance, deadline):
+    """distinct_poses within what is left of the deadline, or GROUPING_GRACE seconds if more;
+    a cut there counts as the deadline's."""
+    grouping = Deadline(None if deadline.seconds is None else max(deadline.remaining(), GROUPING_GRACE))
+    arrays = distinct_poses(model, arrays, tolerance.position_noise, grouping)[0]
+    deadline.hit |= grouping.hit
+    return arrays
 
 
 def listed_rows(classes, count):

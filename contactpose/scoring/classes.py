@@ -60,19 +60,22 @@ def classify_poses(model, all_poses, chi2, n, fits=None, probability=None):
             for m, r, p in zip(members, reps, prob)]
 
 
-def distinct_poses(model, arrays, position_noise):
+def distinct_poses(model, arrays, position_noise, deadline=None):
     """One hypothesis per distinct pose: the ranked hypotheses (HypothesisArrays) without the
     near-copies of a better one, and how many assignments each one stands for.
 
     A hypothesis is a near-copy when the surface points (model.class_points) move by less
     than max(DISTINCT_RMS_FRAC · diameter, DISTINCT_RMS_SIGMA · position_noise), RMS, from a
-    better-ranked kept hypothesis that is determined or underdetermined as it is. Returns
-    (arrays of the kept hypotheses in rank order, (K,) int copies per kept hypothesis, itself included).
+    better-ranked kept hypothesis that is determined or underdetermined as it is. Once
+    ``deadline`` (a progress.Deadline) has passed, the rows not yet grouped are kept as they
+    are. Returns (arrays of the kept hypotheses in rank order, (K,) int copies per kept
+    hypothesis, itself included).
     """
     h = len(arrays.cost)
     if h < 2:
         return arrays, np.ones(h, dtype=np.int64)
-    owner = pose_leaders(model, arrays.poses, arrays.fit.underdetermined, distinct_radius(model, position_noise))
+    owner = pose_leaders(model, arrays.poses, arrays.fit.underdetermined, distinct_radius(model, position_noise),
+                         deadline)
     kept = np.flatnonzero(owner == np.arange(h))
     return arrays.take(kept), np.bincount(np.searchsorted(kept, owner), minlength=len(kept))
 
@@ -82,19 +85,21 @@ def distinct_radius(model, position_noise):
     return max(DISTINCT_RMS_FRAC * model.diameter, DISTINCT_RMS_SIGMA * position_noise)
 
 
-def pose_leaders(model, poses, underdetermined, radius):
+def pose_leaders(model, poses, underdetermined, radius, deadline=None):
     """Greedy grouping of ranked poses (H, 4, 4), best first: each pose not yet taken leads a
     group and takes every later one that moves model.class_points by at most ``radius``, RMS,
-    and is underdetermined (H,) bool as it is. -> (H,) int, the leader of each pose."""
+    and is underdetermined (H,) bool as it is (see :func:`_leaders` for ``deadline``).
+    -> (H,) int, the leader of each pose."""
     v = np.concatenate([pose_embedding(poses, *model.class_moments), 1e3 * radius * underdetermined[:, None]], axis=1)
-    return _leaders(np.ascontiguousarray(v), radius * radius)
+    return _leaders(np.ascontiguousarray(v), radius * radius, deadline)
 
 
-def _leaders(v, r2):
+def _leaders(v, r2, deadline=None):
     """Greedy grouping in rank order: each row not yet taken leads a group and takes every
     later free row within sqrt(r2) of it, found by a k-d tree (the poses lie near a 6-D
-    manifold of the 13-D embedding, where a tree prunes and a grid does not).
-    v : (H, d)  ->  (H,) the leader of each row."""
+    manifold of the 13-D embedding, where a tree prunes and a grid does not). Once
+    ``deadline`` has passed, checked before every leader after the first, each row not yet
+    taken leads itself. v : (H, d)  ->  (H,) the leader of each row."""
     owner = np.full(len(v), -1)
     if not len(v):
         return owner
@@ -103,6 +108,10 @@ def _leaders(v, r2):
     for lead in range(len(v)):
         if owner[lead] >= 0:
             continue
+        if lead and deadline is not None and deadline.passed:
+            free = np.flatnonzero(owner < 0)
+            owner[free] = free
+            break
         near = np.asarray(tree.query_ball_point(v[lead], reach), dtype=np.int64)
         near = near[owner[near] < 0]
         owner[near[np.sum((v[near] - v[lead]) ** 2, axis=1) <= r2]] = lead

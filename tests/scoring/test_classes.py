@@ -7,6 +7,7 @@ import pytest
 
 from contactpose.geometry.metrics import pose_embedding, rms_displacement
 from contactpose.localize import localize
+from contactpose.progress import Deadline
 from contactpose.scoring.classes import DISTINCT_RMS_FRAC, DISTINCT_RMS_SIGMA, _leaders, distinct_poses
 from contactpose.sim import grasps as simulate
 
@@ -47,6 +48,20 @@ def test_leaders_equal_plain_greedy(spread):
     v[1] = v[0] + np.r_[0.3, np.zeros(12)]        # at the radius exactly
     for r in (0.05, 0.3, 2.0):
         assert np.array_equal(_leaders(v, r * r), plain_greedy(v, r * r))
+
+
+def test_leaders_stop_at_a_passed_deadline():
+    """Past the deadline only the first leader's group is formed: every other row leads
+    itself, and the deadline records the cut."""
+    rng = np.random.default_rng(6)
+    v = rng.normal(size=(500, 13)) * 0.1
+    passed = Deadline(1e-9)
+    while not passed.passed:
+        pass
+    owner, full = _leaders(v, 0.09, passed), plain_greedy(v, 0.09)
+    first = full == 0
+    assert first.sum() > 1 and passed.hit
+    assert np.array_equal(owner[first], full[first]) and np.array_equal(owner[~first], np.flatnonzero(~first))
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
