@@ -296,7 +296,7 @@ def _on_patches(model, facets, poses, contacts, limit):
     p = np.einsum("pji,pnj->pni", R, contacts.points[assigned][None] - t[:, None])  # (P, a, 3)
     if model.patches is not None:
         tuples = np.broadcast_to(model.patches.labels[f], (len(poses), len(f)))
-        near = nearest_members(model.patches, model.triangles, np.ascontiguousarray(tuples), p)
+        near = nearest_members(model.member_groups, model.triangles, np.ascontiguousarray(tuples), p)
     else:
         near = np.broadcast_to(f, (len(poses), len(f)))
     d = point_triangle_distance(p.reshape(-1, 3), model.triangles[near.reshape(-1)]).reshape(p.shape[:2])

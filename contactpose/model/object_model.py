@@ -36,7 +36,7 @@ from contactpose.io.modelfile import (
 )
 from contactpose.model.features import DERIVED_FIELDS, PairFeatures, derived_features, pair_features
 from contactpose.model.memory import check_fits
-from contactpose.model.patches import Patches, PatchPairs, find_patches
+from contactpose.model.patches import MemberGroups, Patches, PatchPairs, find_patches
 from contactpose.model.plan import PairPlan
 from contactpose.model.surface import SurfaceTopology
 from contactpose.model.table import DEFAULT_BINS, STORED_BYTES_PER_PAIR, PairTable, check_bins
@@ -402,6 +402,17 @@ class ObjectModel:
     def facet_radii(self):
         """(m,) float: distance from each facet's centroid to its farthest vertex."""
         return np.linalg.norm(self.triangles - self.centroids[:, None], axis=2).max(axis=1)
+
+    @cached_property
+    def member_groups(self):
+        """MemberGroups of the patches (single facets when the model has none): their members
+        in runs with bounding spheres, for nearest-member and closest-point queries."""
+        return MemberGroups.of(self.triangles, self.facet_radii, self.patches)
+
+    @cached_property
+    def facet_groups(self):
+        """MemberGroups with one facet per region, for models searched over facets."""
+        return MemberGroups.of(self.triangles, self.facet_radii)
 
     @cached_property
     def surface_points(self):

@@ -124,13 +124,15 @@ def _problem(model, contacts, arrays, rows, tolerance, threshold):
     facets = arrays.facets[rows]
     used = (facets >= 0).astype(float)                      # unassigned fingers (outliers) drop out
     f = np.maximum(facets, 0)
-    regions, indptr, members = _regions(model, f)
+    regions = _regions(model, f)
+    groups = model.facet_groups if model.patch_table is None else model.member_groups
     planes = model.planes.normals[f], model.planes.offsets[f], regions
     weights = used / tolerance.normal_noise**2, used / tolerance.position_noise**2
     # the tangent bound needs a convex region: one triangle, and a pose with no free direction
     free = arrays.fit.underdetermined[rows]
-    determined = ~free & (np.diff(indptr)[regions] == 1).all(axis=1)
-    shape = (model.triangles, model.centroids, model.facet_radii, indptr, members,
+    determined = ~free & (np.diff(groups.indptr)[regions] == 1).all(axis=1)
+    runs = (groups.grp_ptr, groups.grp_mem, groups.centre, groups.radius, groups.spread)
+    shape = (model.triangles, model.centroids, model.facet_radii, groups.indptr, groups.members, runs,
              np.inf if threshold is None else float(threshold))
     return arrays.fit.R[rows], arrays.fit.t[rows], planes, weights, determined, free, shape
 
@@ -138,10 +140,10 @@ def _problem(model, contacts, arrays, rows, tolerance, threshold):
 def _regions(model, facets):
     """Where each contact may lie: its facet, or with patches all members of its facet's
     patch (the search picked one member only by the closed-form pose). Returns the region
-    of each (K, n) facet, and CSR (indptr, members) of facet indices per region."""
+    of each (K, n) facet, an index into model.member_groups."""
     if model.patch_table is None:
-        return facets, np.arange(model.num_facets + 1), np.arange(model.num_facets)
-    return model.patches.labels[facets], model.patches.indptr, model.patches.members
+        return facets
+    return model.patches.labels[facets]
 
 
 def _bounds(R, t, normals, offsets, regions, contacts, wn, wx, determined, free, shape, steps):
@@ -155,7 +157,7 @@ def _bounds(R, t, normals, offsets, regions, contacts, wn, wx, determined, free,
 
 @numba.njit(cache=True)
 def _bound_kernel(R, t, normals, offsets, points, finger_normals, wn, wx, regions, triangles, centres, radii,
-                  indptr, members, threshold, determined, free, steps, bound, xi_out):
+                  indptr, members, runs, threshold, determined, free, steps, bound, xi_out):
     """Per hypothesis: the plane quadratic (A, g, χ²_0), alternating minimisation of the
     linearised χ² from ξ = 0, and the closed-form minimum of the lower bound there. Where
     that bound does not hold (``determined`` false: a free direction, or a patch of several
@@ -203,8 +205,8 @@ def _bound_kernel(R, t, normals, offsets, points, finger_normals, wn, wx, region
         _cholesky(H, chol)
         many = np.any(indptr[regions[k] + 1] - indptr[regions[k]] > 1)
         reach = _reach(A, g, chi2_0, p, threshold) if many and not free[k] else np.full(n, np.inf)
-        cand, count = _candidates(p, reach, regions[k], centres, radii, indptr, members)
-        xi, last = _alternate(p, cand, count, triangles, centres, radii, wx[k], chol, g_n,
+        cand = _candidates(p, reach, regions[k], centres, radii, members, runs)
+        xi, last = _alternate(p, cand, runs, triangles, centres, radii, wx[k], chol, g_n,
                               steps if determined[k] else 4 * steps)
         w, v = (xi[0], xi[1], xi[2]), (xi[3], xi[4], xi[5])
         h = np.zeros(6)
@@ -212,7 +214,7 @@ def _bound_kernel(R, t, normals, offsets, points, finger_normals, wn, wx, region
         for i in range(n):
             pi = _t(p[i])
             q = _sub(_add(pi, _cross(pi, w)), v)
-            d = _sub(q, _closest_of(q, cand[i, :count[i]], triangles, centres, radii, last[i])[0])
+            d = _sub(q, _closest_of(q, i, cand, runs, triangles, centres, radii, last[i])[0])
             nrm = _t(normals[k, i])
             u = _axpy(-_dot(d, nrm), nrm, d)                 # in-plane: |u| = r_l at q
             gu = _cross(u, pi)
@@ -272,7 +274,7 @@ def _cho_solve(L, b, x):
 
 
 @numba.njit(cache=True)
-def _alternate(p, cand, count, triangles, centres, radii, wx, chol, g_n, steps):
+def _alternate(p, cand, runs, triangles, centres, radii, wx, chol, g_n, steps):
     """Minimise the linearised χ² over ξ, alternating closest points c_i in the contacts'
     regions with the ξ that best meets them: H ξ = -(g_n + Σ_i wx G_iᵀ (p_i - c_i)).
     Returns ξ (6,) and where each contact's closest triangle sits in its candidates."""
@@ -283,7 +285,7 @@ def _alternate(p, cand, count, triangles, centres, radii, wx, chol, g_n, steps):
         for i in range(len(p)):
             pi = _t(p[i])
             q = _sub(_add(pi, _cross(pi, w)), v)
-            c, last[i] = _closest_of(q, cand[i, :count[i]], triangles, centres, radii, last[i])
+            c, last[i] = _closest_of(q, i, cand, runs, triangles, centres, radii, last[i])
             u = _sub(pi, c)
             gu = _cross(u, pi)
             for a in range(3):
@@ -310,43 +312,71 @@ def _reach(A, g, chi2_0, p, threshold):
 
 
 @numba.njit(cache=True)
-def _candidates(p, reach, regions, centres, radii, indptr, members):
+def _candidates(p, reach, regions, centres, radii, members, runs):
     """Per contact, the facets of its region that a pose within noise can bring it to: those
-    whose bounding sphere lies within (distance to the region) + reach of it. -> (n, s), (n,)"""
-    size = 1
-    for i in range(len(p)):
-        size = max(size, indptr[regions[i] + 1] - indptr[regions[i]])
-    cand, count = np.empty((len(p), size), dtype=np.int64), np.zeros(len(p), dtype=np.int64)
-    for i in range(len(p)):
-        lo, hi = indptr[regions[i]], indptr[regions[i] + 1]
+    whose bounding sphere lies within (distance to the region) + reach of it, kept in runs
+    (MemberGroups) so that closest-point queries can skip a run by its sphere. A facet's
+    centroid lies in its run's sphere, so |p - c_f| >= |p - c_run| - r_run bounds whole runs.
+    -> (facets (n, s), count (n,), run starts in facets (n, s + 1), run ids (n, s), runs (n,))"""
+    grp_ptr, grp_mem, grp_centre, grp_radius, spread = runs
+    n, size = len(p), 1
+    for i in range(n):
+        size = max(size, grp_mem[grp_ptr[regions[i] + 1]] - grp_mem[grp_ptr[regions[i]]])
+    facets, count = np.empty((n, size), dtype=np.int64), np.zeros(n, dtype=np.int64)
+    starts, ids, nruns = np.zeros((n, size + 1), dtype=np.int64), np.empty((n, size), dtype=np.int64), np.zeros(n, dtype=np.int64)
+    for i in range(n):
+        x = _t(p[i])
+        lo, hi = grp_ptr[regions[i]], grp_ptr[regions[i] + 1]
         near = np.inf  # an upper bound on the distance from p_i to the region
-        for e in range(lo, hi):
-            near = min(near, np.sqrt(np.sum((p[i] - centres[members[e]]) ** 2)) + radii[members[e]])
-        for e in range(lo, hi):
-            f = members[e]
-            if np.sqrt(np.sum((p[i] - centres[f]) ** 2)) - radii[f] <= near + reach[i]:
-                cand[i, count[i]] = f
-                count[i] += 1
-    return cand, count
+        for g in range(lo, hi):
+            if np.sqrt(_d2(x, _t(grp_centre[g]))) - grp_radius[g] >= near:
+                continue
+            for e in range(grp_mem[g], grp_mem[g + 1]):
+                near = min(near, np.sqrt(_d2(x, _t(centres[members[e]]))) + radii[members[e]])
+        for g in range(lo, hi):
+            if np.sqrt(_d2(x, _t(grp_centre[g]))) - grp_radius[g] - spread[g] > near + reach[i]:
+                continue
+            before = count[i]
+            for e in range(grp_mem[g], grp_mem[g + 1]):
+                f = members[e]
+                if np.sqrt(_d2(x, _t(centres[f]))) - radii[f] <= near + reach[i]:
+                    facets[i, count[i]] = f
+                    count[i] += 1
+            if count[i] > before:
+                ids[i, nruns[i]] = g
+                nruns[i] += 1
+                starts[i, nruns[i]] = count[i]
+    return facets, count, starts, ids, nruns
 
 
 @numba.njit(cache=True)
-def _closest_of(q, facets, triangles, centres, radii, start):
-    """Closest point (3-tuple) to the 3-tuple q on the given triangles, and its position in
-    ``facets``. facets[start] (the last answer) goes first, so the bounding spheres of most
-    others rule them out."""
-    best, out, at = np.inf, q, start
-    for j in range(len(facets)):
-        e = (start + j) % len(facets)
-        f = facets[e]
-        gap = np.sqrt(_d2(q, _t(centres[f]))) - radii[f]
+def _closest_of(q, i, cand, runs, triangles, centres, radii, start):
+    """Closest point (3-tuple) to the 3-tuple q on contact i's candidate triangles (cand from
+    :func:`_candidates`), and its position among them. The last answer, position ``start``,
+    is tried first, so that the spheres of most runs and facets rule them out."""
+    facets, count, starts, ids, nruns = cand
+    grp_centre, grp_radius = runs[2], runs[3]
+    if count[i] == 0:
+        return q, 0
+    at = min(start, count[i] - 1)
+    tri = triangles[facets[i, at]]
+    out = _closest_on_triangle(q, _t(tri[0]), _t(tri[1]), _t(tri[2]))
+    best = _d2(q, out)
+    for r in range(nruns[i]):
+        g = ids[i, r]
+        gap = np.sqrt(_d2(q, _t(grp_centre[g]))) - grp_radius[g]
         if gap > 0.0 and gap * gap >= best:
             continue
-        tri = triangles[f]
-        c = _closest_on_triangle(q, _t(tri[0]), _t(tri[1]), _t(tri[2]))
-        d = _d2(q, c)
-        if d < best:
-            best, out, at = d, c, e
+        for e in range(starts[i, r], starts[i, r + 1]):
+            f = facets[i, e]
+            gap = np.sqrt(_d2(q, _t(centres[f]))) - radii[f]
+            if gap > 0.0 and gap * gap >= best:
+                continue
+            tri = triangles[f]
+            c = _closest_on_triangle(q, _t(tri[0]), _t(tri[1]), _t(tri[2]))
+            d = _d2(q, c)
+            if d < best:
+                best, out, at = d, c, e
     return out, at
 
 

@@ -100,7 +100,7 @@ def fitting_members(model, contacts, tuples, R, t, tolerance):
     (model.patches.nearest_members). tuples : (H, n) patch indices  ->  (H, n) facets"""
     normals = -np.einsum("hji,nj->hni", R, contacts.finger_normals)
     weight = (tolerance.position_noise / tolerance.normal_noise) ** 2
-    return nearest_members(model.patches, model.triangles, tuples, res.to_object_frame(R, t, contacts.points),
+    return nearest_members(model.member_groups, model.triangles, tuples, res.to_object_frame(R, t, contacts.points),
                            (model.planes.normals, normals, weight), (model.centroids, model.facet_radii))
 
 

@@ -538,7 +538,7 @@ def nearest_facets(model, contacts, facets, poses):
     if patches is None or not np.any(np.diff(patches.indptr)[labels] > 1):
         return facets  # no patches, or every contact's patch is a single facet
     p_obj = res.to_object_frame(poses[:, :3, :3], poses[:, :3, 3], contacts.points)
-    return np.where(facets >= 0, nearest_members(patches, model.triangles, labels, p_obj), -1)
+    return np.where(facets >= 0, nearest_members(model.member_groups, model.triangles, labels, p_obj), -1)
 
 
 def _log_evidence(chi2, cov, prior_cov):

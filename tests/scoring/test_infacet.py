@@ -166,3 +166,30 @@ def test_polished_poses_lower_the_full_chi2(rock_model, banana_model):
             gaps.append(b.chi2 - refined_chi2(model, g.contacts, b.facets, b.pose, r.tolerance))
     assert improved >= 5
     assert np.median(gaps) < 0.1
+
+
+def test_member_runs_do_not_change_the_bound(monkeypatch):
+    """On a box whose faces are regions of 128 facets, the bound (and the pose its
+    minimisation reaches) with the members in runs of GROUP_FACETS equals the bound with
+    every member its own run: a run's sphere only skips members that cannot be closest."""
+    import trimesh
+
+    from contactpose.model.object_model import ObjectModel
+    from contactpose.model.patches import MemberGroups
+
+    mesh = trimesh.creation.box(extents=(0.10, 0.06, 0.04))
+    for _ in range(3):
+        mesh = mesh.subdivide()
+    model = ObjectModel.from_mesh(trimesh.Trimesh(mesh.vertices, mesh.faces, process=False))
+    checked = 0
+    for g, r in located(model, 3, 12):
+        a = r.hypotheses.arrays
+        rows = np.arange(min(len(a.cost), 64))
+        runs = lowest_chi2_bound(model, g.contacts, a, rows, r.tolerance)
+        monkeypatch.setitem(model.__dict__, "member_groups",
+                            MemberGroups.of(model.triangles, model.facet_radii, model.patches, run=1))
+        single = lowest_chi2_bound(model, g.contacts, a, rows, r.tolerance)
+        monkeypatch.undo()
+        assert np.allclose(runs, single, rtol=1e-12, atol=1e-12)
+        checked += len(rows)
+    assert checked > 50
