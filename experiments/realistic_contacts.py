@@ -363,19 +363,26 @@ def ours(s, contacts, truth, noise, cfg, **options):
     return r, row
 
 
+def draw(s, rng, frac, cfg):
+    """One grasp's draws, in the cell's order: pose, fingertips of radius frac x diameter,
+    position noise, normal noise. -> (true pose, Contacts (world), object-frame points,
+    outward normals, facets, features, redraws)"""
+    D = s.model.diameter
+    pose = simulate.random_pose(rng, max_translation=cfg["translation_frac"] * D)
+    points, normals, facets, features, redraws = fingertips(s, rng, frac * D, cfg)
+    R, t = pose[:3, :3], pose[:3, 3]
+    world = points @ R.T + t + rng.normal(0.0, cfg["position_noise_frac"] * D, points.shape)
+    finger = perturb_normals(-(normals @ R.T), np.radians(cfg["normal_noise_deg"]), rng)
+    return pose, Contacts(world, finger_normals=finger), points, normals, facets, features, redraws
+
+
 def task(settings, rng, *, cfg, cache):
     name, frac, seed = settings["object"], settings["radius_frac"], settings["seed"]
     s = setup(name, cache, cfg)
     model = s.model
     D = model.diameter
-    pose = simulate.random_pose(rng, max_translation=cfg["translation_frac"] * D)
-    points, normals, facets, features, redraws = fingertips(s, rng, frac * D, cfg)
-    R, t = pose[:3, :3], pose[:3, 3]
-    sx = cfg["position_noise_frac"] * D
-    world = points @ R.T + t + rng.normal(0.0, sx, points.shape)
-    finger = perturb_normals(-(normals @ R.T), np.radians(cfg["normal_noise_deg"]), rng)
-    contacts = Contacts(world, finger_normals=finger)
-    noise = dict(position_noise=sx, normal_noise_deg=cfg["normal_noise_deg"])
+    pose, contacts, points, normals, facets, features, redraws = draw(s, rng, frac, cfg)
+    noise = dict(position_noise=cfg["position_noise_frac"] * D, normal_noise_deg=cfg["normal_noise_deg"])
     kinds = [str(f) for f in features]
     grasp = {"symmetry": ycb.symmetry(name) or "none", "diameter_mm": 1e3 * D, "radius_mm": 1e3 * frac * D,
              "features": " ".join(kinds), "n_face": kinds.count(fingertip.FACE), "n_edge": kinds.count(fingertip.EDGE),
