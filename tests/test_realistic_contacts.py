@@ -19,6 +19,7 @@ sys.path.insert(0, str(EXPERIMENTS))
 import run_all  # noqa: E402
 
 rc = run_all.load("realistic_contacts")
+ts = run_all.load("truth_stages")
 
 
 def small_setup(name="banana"):
@@ -71,6 +72,21 @@ def test_incident_facets_of_edges_and_vertices():
             assert len(inc) >= 2 and d.max() < 1e-9 * s.model.diameter, (k, d)
         kinds.add(str(k))
     assert {"edge", "vertex"} <= kinds
+
+
+def test_placement_rank_is_the_first_pose_within_adds():
+    """truth_stages.placement_rank: the first ranked pose within the ADD-S limit, by brute force."""
+    s = small_setup()
+    rng = np.random.default_rng(4)
+    truth = simulate.random_pose(rng, max_translation=0.05)
+    D = s.model.diameter
+    for k in range(20):
+        spread = rng.uniform(0.02, 0.6)
+        poses = np.stack([truth @ simulate.pose_from(rng.normal(0, spread, 3), rng.normal(0, 0.2 * spread * D, 3))
+                          for _ in range(60)])
+        adds = np.array([metrics.adds(T, truth, s.model.surface_points, s.model.surface_tree) for T in poses])
+        within = np.flatnonzero(adds < 0.05 * D)
+        assert ts.placement_rank(s, poses, truth, 0.05 * D) == (int(within[0]) if len(within) else None), k
 
 
 @pytest.mark.slow
