@@ -168,6 +168,7 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--limit", type=int, default=10, help="strict failures per asymmetric object and radius")
     parser.add_argument("--objects", nargs="*", help="only these objects (default: every object in grasps.csv)")
+    parser.add_argument("--out", default=str(OUT), help="where truth_stages.csv and .md go (default: %(default)s)")
     args = parser.parse_args(argv)
     warnings.simplefilter("ignore")
     bench, cfg = bench_module(), config()
@@ -176,7 +177,9 @@ def main(argv=None):
     by_object = collections.defaultdict(list)
     for row, crit in picked:
         by_object[row["object"]].append((row, crit))
-    path = OUT / "truth_stages.csv"
+    out_dir = Path(args.out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    path = out_dir / "truth_stages.csv"
     kept = [r for r in sweep.read_rows(path) if r["object"] not in by_object] if path.exists() else []
     out = []
     for name, items in by_object.items():
@@ -198,7 +201,7 @@ def main(argv=None):
         print(f"{name}: {len(items)} grasps, {time.perf_counter() - start:.0f} s", flush=True)
         sweep.write_rows(path, kept + out)
     rows = sweep.read_rows(path)
-    (OUT / "truth_stages.md").write_text(table(rows))
+    (out_dir / "truth_stages.md").write_text(table(rows))
     print(table(rows))
     return 0
 
