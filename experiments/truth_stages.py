@@ -20,13 +20,15 @@ For each grasp it also records the true region tuple's best row (its χ² and ro
 from ``distinct=False``) beside the listed best's, and the rotation error an efficient
 estimator would make with these contacts (RMS, Cramér–Rao, each contact's location unknown
 on a quadric: uncertainty.bounds), which says whether the grasp or the method limits the
-pose. Failures: top-1 by ADD-S on every object, and strict top-1 (rotation < 5°, translation
-< 5 % of the diameter) on the asymmetric objects (on a symmetric one it fails by design).
+pose. Failures: top-1 by ADD-S, and found (no listed pose within ADD-S 5 % though the best is
+within 10 %), on every object; strict top-1 (rotation < 5°, translation < 5 % of the diameter)
+on the asymmetric objects (on a symmetric one it fails by design).
 
-Writes results/realistic_contacts/truth_stages.csv (the rows of objects not in this run are
-kept) and truth_stages.md::
+Writes results/realistic_contacts/truth_stages.csv (the rows of objects and criteria not in
+this run are kept) and truth_stages.md::
 
     .venv/bin/python experiments/truth_stages.py [--limit N]    # N strict failures per object and radius
+        [--objects NAME ...] [--criteria adds found strict] [--out DIR]
 """
 
 from __future__ import annotations
@@ -55,6 +57,8 @@ from contactpose.uncertainty.bounds import local_quadric, pose_information
 HERE = Path(__file__).resolve().parent
 OUT = HERE.parent / "results" / "realistic_contacts"
 STAGES = ("first", "ranking", "fit", "grouping", "table", "tree", "cut")
+#: Failure criteria, in the order a grasp is assigned to them (failures).
+CRITERIA = ("adds", "found", "strict")
 #: The true placement: a distinct pose within this ADD-S (fraction of the diameter) of the truth.
 FOUND_FRAC = 0.05
 #: Distinct poses, nearest the truth first, whose ADD-S placement_rank computes.
@@ -75,13 +79,17 @@ def config():
 
 
 def failures(limit):
-    """Failing default-method rows of grasps.csv: every top-1 ADD-S failure, and up to ``limit``
-    strict failures per asymmetric object and radius."""
+    """Failing default-method rows of grasps.csv, each under the first criterion it fails: every
+    top-1 ADD-S failure ("adds"), every grasp whose listing holds no pose within ADD-S 5 %
+    though its best is within 10 % ("found"), and up to ``limit`` strict failures per
+    asymmetric object and radius ("strict")."""
     rows = [r for r in sweep.read_rows(OUT / "grasps.csv") if r["method"] == "fast"]
     picked, strict = [], collections.Counter()
     for r in rows:
         if r["top1_adds"] == "0":
             picked.append((r, "adds"))
+        elif r["found"] == "0":
+            picked.append((r, "found"))
         elif r["top1_strict"] == "0" and r["symmetry"] == "none":
             key = (r["object"], r["radius_frac"])
             if strict[key] < limit:
@@ -169,10 +177,13 @@ def main(argv=None):
     parser.add_argument("--limit", type=int, default=10, help="strict failures per asymmetric object and radius")
     parser.add_argument("--objects", nargs="*", help="only these objects (default: every object in grasps.csv)")
     parser.add_argument("--out", default=str(OUT), help="where truth_stages.csv and .md go (default: %(default)s)")
+    parser.add_argument("--criteria", nargs="*", choices=CRITERIA, default=list(CRITERIA),
+                        help="only failures under these criteria (default: all)")
     args = parser.parse_args(argv)
     warnings.simplefilter("ignore")
     bench, cfg = bench_module(), config()
-    picked = [(r, c) for r, c in failures(args.limit) if not args.objects or r["object"] in args.objects]
+    picked = [(r, c) for r, c in failures(args.limit)
+              if (not args.objects or r["object"] in args.objects) and c in args.criteria]
     print(f"truth_stages: {len(picked)} failing grasps", flush=True)
     by_object = collections.defaultdict(list)
     for row, crit in picked:
@@ -180,7 +191,8 @@ def main(argv=None):
     out_dir = Path(args.out)
     out_dir.mkdir(parents=True, exist_ok=True)
     path = out_dir / "truth_stages.csv"
-    kept = [r for r in sweep.read_rows(path) if r["object"] not in by_object] if path.exists() else []
+    redone = lambda r: r["object"] in by_object and r["criterion"] in args.criteria  # noqa: E731
+    kept = [r for r in sweep.read_rows(path) if not redone(r)] if path.exists() else []
     out = []
     for name, items in by_object.items():
         start = time.perf_counter()
@@ -210,13 +222,13 @@ def table(rows):
     lines = ["| r (% diam.) | criterion | failures | " + " | ".join(STAGES) + " | same answer as the run |",
              "|---:|---|---:|" + "---:|" * len(STAGES) + "---:|"]
     for frac in sorted({r["radius_frac"] for r in rows}, key=float):
-        for crit in ("adds", "strict"):
+        for crit in CRITERIA:
             sel = [r for r in rows if r["radius_frac"] == frac and r["criterion"] == crit]
             if sel:
                 counts = collections.Counter(r["stage"] for r in sel)
                 lines.append(f"| {100 * float(frac):g} | {crit} | {len(sel)} | "
                              + " | ".join(str(counts[s]) for s in STAGES)
-                             + f" | {sum(r['same_answer'] == '1' for r in sel)} |")
+                             + f" | {sum(r['same_answer'] in ('1', 'True') for r in sel)} |")
     lines += ["", "Strict failures whose true placement is first (stage `first`): the best pose's rotation error "
               "against the Cramér–Rao RMS rotation error of the grasp, and the true region tuple's own best row "
               "(distinct=False) against the listed best.", "",
