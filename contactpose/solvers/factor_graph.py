@@ -62,9 +62,13 @@ Hypothesis scores:
   With a robust kernel exp(-ρ) stands in for the Gaussian likelihood;
 * ``probability``: softmax of log_evidence over the refined hypotheses.
 
-A hypothesis whose normals leave pose directions free (and no prior) has no Gaussian
-posterior: its covariance and log-evidence are NaN and it gets probability 0 (all NaN
-when no refined hypothesis is determined).
+A hypothesis whose normals leave pose directions free (the closed form's free directions,
+and no prior) has no Gaussian posterior: its covariance and log-evidence are NaN and it gets
+probability 0 (all NaN when no refined hypothesis is determined), so such rows keep the
+closed form's order. This holds even where LM's Hessian is regular: the point-to-facet
+residual of a contact outside its triangle pins a free direction at the triangle's edge,
+which places one member of the family, not the pose (research/discrimination.md, "The
+factor graph on underdetermined hypotheses").
 
 """
 
@@ -86,7 +90,7 @@ from contactpose.geometry.kernels import closest_point_triangle, point_triangle_
 from contactpose.model.patches import nearest_members
 from contactpose.solvers import residuals as res
 from contactpose.solvers.closed_form import wahba
-from contactpose.types import DEFAULT_REFINE, ROBUST, HypothesisArrays, PosePrior, outlier_penalty
+from contactpose.types import DEFAULT_REFINE, ROBUST, HypothesisArrays, PosePrior, fit_threshold, outlier_penalty
 
 log = logging.getLogger(__name__)
 
@@ -491,6 +495,7 @@ def refine_hypotheses(model, contacts, arrays, tolerance, *, prior=None, robust=
         graph.add(prior_factor(prior))
     prior_cov = None if prior is None else prior.covariance_matrix()
     K = len(idx)
+    free = np.asarray(arrays.fit.underdetermined)[idx] if prior is None else np.zeros(K, bool)
     penalty = outlier_penalty(facets)
     poses, chi2, cov = starts.copy(), np.zeros(K), np.zeros((K, 6, 6))
     iters, secs, cpu_secs = np.zeros(K, int), np.zeros(K), np.zeros(K)
@@ -499,6 +504,8 @@ def refine_hypotheses(model, contacts, arrays, tolerance, *, prior=None, robust=
         for j in rows:
             for _ in range(1 + REASSIGN_ROUNDS):
                 poses[j], chi2[j], cov[j], it, sec, cpu = _timed(graph, buffer, packed[j], poses[j], lm)
+                if free[j]:  # the normals leave directions free: no Gaussian posterior
+                    cov[j] = np.nan
                 chi2[j] += penalty[j]
                 iters[j] += it
                 secs[j] += sec
@@ -514,7 +521,8 @@ def refine_hypotheses(model, contacts, arrays, tolerance, *, prior=None, robust=
         refine(np.flatnonzero(normalise(_log_evidence(chi2, cov, prior_cov)) >= POLISH_PROBABILITY), polish)
     # rows that ended on the same facets are one hypothesis: keep the most probable
     log_ev = _log_evidence(chi2, cov, prior_cov)
-    order = np.lexsort((np.arange(K), -np.nan_to_num(log_ev, nan=-np.inf)))
+    order = np.lexsort((np.arange(K), -np.nan_to_num(log_ev, nan=-np.inf), ~_fits(model, contacts, facets, poses,
+                                                                                    tolerance, point_to_facet, prior)))
     _, first = np.unique(facets[order], axis=0, return_index=True)
     order = order[np.sort(first)]
     prob = normalise(log_ev[order])
@@ -523,6 +531,16 @@ def refine_hypotheses(model, contacts, arrays, tolerance, *, prior=None, robust=
     return Refinement(idx[order], facets[order], poses[order], starts[order], chi2[order], contact_chi2,
                       cov[order], log_ev[order], prob, iters[order], determined, secs[order],
                       cpu_secs[order], robust, prior is not None, agreeing)
+
+
+def _fits(model, contacts, facets, poses, tolerance, point_to_facet, prior):
+    """(K,) bool, the first ranking key without a prior: the refined pose fits the contacts
+    within noise (χ² <= fit_threshold). A pose family has no evidence to rank it by, so a
+    family that fits is kept before a determined pose that does not. With a prior: all True."""
+    if prior is not None:
+        return np.ones(len(facets), bool)
+    chi2 = _contact_chi2(model, contacts, facets, poses, tolerance, point_to_facet) + outlier_penalty(facets)
+    return chi2 <= fit_threshold(contacts.n)
 
 
 def nearest_facets(model, contacts, facets, poses):
