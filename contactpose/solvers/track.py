@@ -1,0 +1,162 @@
+"""One hypothesis tracked touch after touch: a pose trajectory smoothed by GTSAM's iSAM2.
+
+The object is held in a hand that moves between touches. Step k has its own pose variable
+X_k = T_world_object at the time of touch k. The hand's motion between touches k-1 and k is
+a known rigid transform ΔT_k of the world (x' = ΔT_k x). The object moves with the hand, up to
+a slip S_k in the object frame:
+
+    X_k = ΔT_k X_{k-1} S_k,   S_k = Exp(ξ),   ξ ~ N(0, diag(σ_r² I₃, σ_t² I₃))  (rotation first).
+
+The variables are taken in the frame that moves with the hand, Y_k = H_k⁻¹ X_k, where
+H_k = ΔT_k ··· ΔT_1 (H_0 = I). Then Y_k = Y_{k-1} S_k exactly, which is GTSAM's
+``BetweenFactorPose3(Y_{k-1}, Y_k, I, slip)``, and the contacts of touch k, moved by H_k⁻¹,
+enter the batched contact factor of :mod:`contactpose.solvers.factor_graph` on Y_k unchanged.
+Touches of an object that has not moved share one variable.
+
+A touch after a hand motion adds one variable and two factors, and ``gtsam.ISAM2`` (Dogleg
+steps, every change back-substituted) updates the smoothed trajectory incrementally;
+:meth:`PoseTrack.relinearize` iterates it to convergence, and :meth:`PoseTrack.batch` solves
+the same graph by Levenberg–Marquardt from the same initial values, the reference. Without the
+point-to-facet term the two agree to 1e-9; with it, whose residual has a kink where a contact
+crosses its triangle's edge, the trust-region steps can stop short, measured within 2e-6 of
+the batch χ² and 6e-6 of its poses (tests/solvers/test_track.py).
+"""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+
+from contactpose.contacts import Contacts, Tolerance
+from contactpose.errors import ContactPoseError
+from contactpose.solvers import factor_graph as fg
+from contactpose.types import PosePrior
+
+#: iSAM2 relinearises every variable whose update exceeds this (tangent norm) at every update.
+RELINEARIZE_THRESHOLD = 1e-8
+#: LM settings of the batch reference.
+BATCH = dict(max_iterations=100, relative_tol=1e-12, absolute_tol=1e-14)
+
+
+def hand_motion_noise(sigma_rot_deg, sigma_trans):
+    """The slip's noise model: diagonal, rotation (radians) first, as Pose3's tangent."""
+    if not (np.isfinite(sigma_rot_deg) and sigma_rot_deg > 0 and np.isfinite(sigma_trans) and sigma_trans > 0):
+        raise ContactPoseError(f"slip sigmas must be positive and finite, got {sigma_rot_deg!r} deg and {sigma_trans!r}")
+    s = np.r_[np.full(3, np.radians(sigma_rot_deg)), np.full(3, float(sigma_trans))]
+    return gtsam.noiseModel.Diagonal.Sigmas(s)
+
+
+class PoseTrack:
+    """The trajectory of one hypothesis (its facets at each touch) in an iSAM2 smoother.
+
+    model : ObjectModel; contacts : Contacts of the first touch; facets : (n,) int, their
+    facets; pose : (4, 4) T_world_object to start from (the hypothesis's pose); tolerance :
+    Tolerance (σ_x, σ_n); robust : "huber" | "cauchy" | "none"; prior : PosePrior on the first
+    pose, or None (then the first touch must determine the pose); point_to_facet : the lateral
+    residual of a contact outside its triangle (factor_graph's contact factor).
+    """
+
+    def __init__(self, model, contacts, facets, pose, tolerance, *, robust="huber", prior=None, point_to_facet=True):
+        if not isinstance(tolerance, Tolerance):
+            raise ContactPoseError(f"tolerance must be a contactpose.Tolerance, got {type(tolerance).__name__}")
+        if prior is not None and not isinstance(prior, PosePrior):
+            raise ContactPoseError(f"prior must be a contactpose.PosePrior or None, got {type(prior).__name__}")
+        self.model, self.tolerance = model, tolerance
+        self.params = fg.kernel_params(tolerance, robust, point_to_facet)
+        self.hand = [np.eye(4)]  # H_k
+        self.graph = gtsam.NonlinearFactorGraph()  # every factor so far (the batch reference)
+        self.initial = gtsam.Values()
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(RELINEARIZE_THRESHOLD)
+        params.relinearizeSkip = 1
+        dogleg = gtsam.ISAM2DoglegParams()
+        dogleg.setWildfireThreshold(0.0)  # back-substitute every change, however small
+        params.setOptimizationParams(dogleg)
+        self.isam = gtsam.ISAM2(params)
+        factors, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        if prior is not None:
+            factors.add(fg.prior_factor(prior, key=0))
+        values.insert(0, gtsam.Pose3(np.asarray(pose, dtype=np.float64)))
+        self._update(factors, values, contacts, facets)
+
+    def add(self, contacts, facets, hand_motion=None):
+        """One more touch: its contacts (world frame) and facets (n,) int; hand_motion :
+        None (the object has not moved: the contacts join the last pose's factor graph, no new
+        variable) or (ΔT (4, 4), σ_rot in degrees, σ_trans), the hand's motion since the last
+        touch and the slip (a new pose variable). Returns the smoothed current pose (4, 4)."""
+        factors, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        if hand_motion is not None:
+            delta, sigma_rot_deg, sigma_trans = hand_motion
+            k = len(self.hand)
+            self.hand.append(np.asarray(delta, dtype=np.float64) @ self.hand[-1])
+            factors.add(gtsam.BetweenFactorPose3(k - 1, k, gtsam.Pose3(), hand_motion_noise(sigma_rot_deg, sigma_trans)))
+            values.insert(k, self._estimate.atPose3(k - 1))  # Y_k predicted: no slip
+        self._update(factors, values, contacts, facets)
+        return self.pose
+
+    def _update(self, factors, values, contacts, facets):
+        """The contact factor of a touch on the last pose variable, with ``factors`` and new
+        ``values``: one iSAM2 update."""
+        k = len(self.hand) - 1
+        if not isinstance(contacts, Contacts):
+            raise ContactPoseError(f"contacts must be a contactpose.Contacts, got {type(contacts).__name__}")
+        facets = np.asarray(facets)
+        if facets.shape != (contacts.n,) or facets.min() < -1 or facets.max() >= self.model.num_facets:
+            raise ContactPoseError(f"facets must be {contacts.n} indices into the model's {self.model.num_facets} "
+                                   f"facets (-1: unassigned), got {facets.tolist()}")
+        local = contacts.transformed(np.linalg.inv(self.hand[k]))
+        factors.add(fg.contact_factor(fg.pack_contacts(self.model, local, facets), self.params, key=k))
+        for i in range(factors.size()):
+            self.graph.add(factors.at(i))
+        self.initial.insert(values)
+        try:
+            self.isam.update(factors, values)
+        except RuntimeError as err:  # indeterminant system: the touches so far leave directions free
+            raise ContactPoseError(f"pose {k}: the contacts so far leave pose directions free; give a prior "
+                                   f"or more contacts ({err})") from None
+        self._estimate = self.isam.calculateEstimate()
+
+    def _y(self, k):
+        return self._estimate.atPose3(k).matrix()
+
+    @property
+    def poses(self):
+        """(K, 4, 4) smoothed T_world_object of every pose variable (one per hand motion, plus
+        the first): X_k = H_k Y_k."""
+        return np.stack([h @ self._y(k) for k, h in enumerate(self.hand)])
+
+    @property
+    def pose(self):
+        """(4, 4) smoothed T_world_object at the last touch."""
+        return self.hand[-1] @ self._y(len(self.hand) - 1)
+
+    @property
+    def covariance(self):
+        """(6, 6) iSAM2 marginal covariance of the last pose, rotation first, in the tangent
+        space of Y_k (right perturbation of X_k = H_k Y_k is the same perturbation of Y_k)."""
+        return self.isam.marginalCovariance(len(self.hand) - 1)
+
+    def relinearize(self, max_updates=100, tol=1e-12):
+        """iSAM2 updates without new factors until no pose moves by more than ``tol`` (tangent
+        norm) or after ``max_updates``: the smoothed trajectory converged. -> poses"""
+        for _ in range(max_updates):
+            before = self._estimate
+            self.isam.update()
+            self._estimate = self.isam.calculateEstimate()
+            moved = max(np.linalg.norm(before.atPose3(k).localCoordinates(self._estimate.atPose3(k)))
+                        for k in range(len(self.hand)))
+            if moved <= tol:
+                break
+        return self.poses
+
+    def cost(self, poses):
+        """The graph's χ² (2 · error) at a trajectory. poses : (K, 4, 4) T_world_object."""
+        values = gtsam.Values()
+        for k, (h, x) in enumerate(zip(self.hand, poses)):
+            values.insert(k, gtsam.Pose3(np.linalg.inv(h) @ x))
+        return 2.0 * self.graph.error(values)
+
+    def batch(self):
+        """The same graph solved by LM from the same initial values. -> (K, 4, 4) T_world_object"""
+        result = gtsam.LevenbergMarquardtOptimizer(self.graph, self.initial, fg.lm_params(**BATCH)).optimize()
+        return np.stack([h @ result.atPose3(k).matrix() for k, h in enumerate(self.hand)])
