@@ -370,6 +370,44 @@ def test_underdetermined_hypothesis_gets_no_probability(box):
     assert ref.determined[0] and ref.probability[0] == 1.0
 
 
+def test_covariance_leaves_out_the_point_to_facet_hinge(rock):
+    """A contact slid just outside its triangle: the reported covariance is (JᵀJ)⁻¹ of the
+    normal and offset residuals alone, J by central differences at T* (right perturbation),
+    and not that of the full factor, whose hinge curvature would shrink it."""
+    rng = np.random.default_rng(31)
+    tol = _tolerance(rock)
+    g = simulate.grasp(rock, rng, n=4, position_noise=tol.position_noise, normal_noise_deg=1.0)
+    points = g.contacts.points.copy()
+    tri = rock.triangles[g.facets[0]] @ g.pose[:3, :3].T + g.pose[:3, 3]
+    normal = g.pose[:3, :3] @ rock.planes.normals[g.facets[0]]
+    away = points[0] - tri.mean(axis=0)
+    away -= (away @ normal) * normal  # in the facet's plane, away from its centroid
+    far = np.max(np.linalg.norm(tri - tri.mean(axis=0), axis=1))
+    points[0] = tri.mean(axis=0) + (far + 0.01 * rock.diameter) * away / np.linalg.norm(away)
+    contacts = Contacts(points, g.contacts.finger_normals)
+    arrays = closed_form_arrays(rock, contacts, g.facets[None], tol)
+    ref = fg.refine_hypotheses(rock, contacts, arrays, tol, robust="none", k=1)
+    T = ref.poses[0]
+    data = fg.pack_contacts(rock, contacts, ref.facets[0])
+    e_full, _ = fg.contact_residuals(T, data, fg.kernel_params(tol, "none"), jacobian=False)
+    assert e_full[4 * contacts.n:].max() > 0.5  # the hinge is active (whitened)
+
+    def jacobian(params, h=1e-6):
+        J = np.empty((fg.factor_dim(contacts.n, params[4] != 0.0), 6))
+        for i in range(6):
+            d = np.zeros(6)
+            d[i] = h
+            plus = fg.contact_residuals(T @ gtsam.Pose3.Expmap(d).matrix(), data, params, jacobian=False)[0]
+            minus = fg.contact_residuals(T @ gtsam.Pose3.Expmap(-d).matrix(), data, params, jacobian=False)[0]
+            J[:, i] = (plus - minus) / (2 * h)
+        return J
+
+    J = jacobian(fg.kernel_params(tol, "none", point_to_facet=False))
+    np.testing.assert_allclose(ref.covariance[0], np.linalg.inv(J.T @ J), rtol=1e-4, atol=1e-16)
+    J_full = jacobian(fg.kernel_params(tol, "none"))
+    assert np.linalg.det(np.linalg.inv(J_full.T @ J_full)) < 0.9 * np.linalg.det(ref.covariance[0])
+
+
 def test_lateral_residual_does_not_make_a_pose_family_determined(box):
     """All four contacts on one face, three of them slid past its edges in its plane: the
     point-to-facet residual then pins the in-plane directions that the normals leave free, so
