@@ -65,6 +65,8 @@ class PoseTrack:
         self.params = fg.kernel_params(tolerance, robust, point_to_facet)
         self.hand = [np.eye(4)]  # H_k
         self.graph = gtsam.NonlinearFactorGraph()  # every factor so far (the batch reference)
+        self.spread = gtsam.NonlinearFactorGraph()  # the same without point-to-facet rows (covariance)
+        self.spread_params = fg.kernel_params(tolerance, robust, point_to_facet=False)
         self.initial = gtsam.Values()
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(RELINEARIZE_THRESHOLD)
@@ -105,7 +107,11 @@ class PoseTrack:
             raise ContactPoseError(f"facets must be {contacts.n} indices into the model's {self.model.num_facets} "
                                    f"facets (-1: unassigned), got {facets.tolist()}")
         local = contacts.transformed(np.linalg.inv(self.hand[k]))
-        factors.add(fg.contact_factor(fg.pack_contacts(self.model, local, facets), self.params, key=k))
+        data = fg.pack_contacts(self.model, local, facets)
+        for i in range(factors.size()):
+            self.spread.add(factors.at(i))
+        self.spread.add(fg.contact_factor(data.copy(), self.spread_params, key=k))
+        factors.add(fg.contact_factor(data, self.params, key=k))
         for i in range(factors.size()):
             self.graph.add(factors.at(i))
         self.initial.insert(values)
@@ -132,9 +138,16 @@ class PoseTrack:
 
     @property
     def covariance(self):
-        """(6, 6) iSAM2 marginal covariance of the last pose, rotation first, in the tangent
-        space of Y_k (right perturbation of X_k = H_k Y_k is the same perturbation of Y_k)."""
-        return self.isam.marginalCovariance(len(self.hand) - 1)
+        """(6, 6) marginal covariance of the last pose at the smoothed estimate, rotation first,
+        in the tangent space of Y_k (a right perturbation of X_k = H_k Y_k is the same one of
+        Y_k). As the single-pose factor graph's, it leaves out the point-to-facet hinge's
+        curvature (factor_graph._optimize): the marginal of :attr:`spread`, or iSAM2's own
+        where that leaves directions free."""
+        k = len(self.hand) - 1
+        try:
+            return gtsam.Marginals(self.spread, self._estimate).marginalCovariance(k)
+        except RuntimeError:
+            return self.isam.marginalCovariance(k)
 
     def relinearize(self, max_updates=100, tol=1e-12):
         """iSAM2 updates without new factors until no pose moves by more than ``tol`` (tangent

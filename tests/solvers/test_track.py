@@ -105,10 +105,12 @@ def test_static_touches_are_one_pose(rock_model):
     track.add(g.contacts.permuted([4, 5]), g.facets[4:6])
     track.add(g.contacts.permuted([6, 7]), g.facets[6:8])
     assert len(track.poses) == 1
-    graph = gtsam.NonlinearFactorGraph()
-    graph.add(fg.contact_factor(fg.pack_contacts(rock, g.contacts, g.facets), fg.kernel_params(tol, "huber")))
+    graph, spread = gtsam.NonlinearFactorGraph(), gtsam.NonlinearFactorGraph()
+    data = fg.pack_contacts(rock, g.contacts, g.facets)
+    graph.add(fg.contact_factor(data, fg.kernel_params(tol, "huber")))
+    spread.add(fg.contact_factor(data, fg.kernel_params(tol, "huber", point_to_facet=False)))
     pose, _, cov, _ = fg._optimize(graph, g.pose, fg.lm_params(max_iterations=100, relative_tol=1e-12,
-                                                               absolute_tol=1e-14))
+                                                               absolute_tol=1e-14), spread)
     np.testing.assert_allclose(track.relinearize()[0], pose, atol=1e-9)
     np.testing.assert_allclose(track.covariance, cov, rtol=1e-6, atol=1e-18)
 
