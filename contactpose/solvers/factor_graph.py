@@ -524,26 +524,18 @@ def refine_hypotheses(model, contacts, arrays, tolerance, *, prior=None, robust=
         refine(np.flatnonzero(normalise(_log_evidence(chi2, cov, prior_cov)) >= POLISH_PROBABILITY), polish)
     # rows that ended on the same facets are one hypothesis: keep the most probable
     log_ev = _log_evidence(chi2, cov, prior_cov)
-    order = np.lexsort((np.arange(K), -np.nan_to_num(log_ev, nan=-np.inf), ~_fits(model, contacts, facets, poses,
-                                                                                    tolerance, point_to_facet, prior)))
+    contact_chi2 = _contact_chi2(model, contacts, facets, poses, tolerance, point_to_facet)
+    # without a prior a pose family has no evidence to rank it by: one that fits within noise
+    # (χ² <= fit_threshold) is kept before a determined pose that does not
+    fits = prior is not None or contact_chi2 + penalty <= fit_threshold(contacts.n)
+    order = np.lexsort((np.arange(K), -np.nan_to_num(log_ev, nan=-np.inf), ~np.broadcast_to(fits, (K,))))
     _, first = np.unique(facets[order], axis=0, return_index=True)
     order = order[np.sort(first)]
     prob = normalise(log_ev[order])
-    contact_chi2 = _contact_chi2(model, contacts, facets[order], poses[order], tolerance, point_to_facet)
     determined = np.isfinite(cov[order]).all(axis=(1, 2))
-    return Refinement(idx[order], facets[order], poses[order], starts[order], chi2[order], contact_chi2,
+    return Refinement(idx[order], facets[order], poses[order], starts[order], chi2[order], contact_chi2[order],
                       cov[order], log_ev[order], prob, iters[order], determined, secs[order],
                       cpu_secs[order], robust, prior is not None, agreeing)
-
-
-def _fits(model, contacts, facets, poses, tolerance, point_to_facet, prior):
-    """(K,) bool, the first ranking key without a prior: the refined pose fits the contacts
-    within noise (χ² <= fit_threshold). A pose family has no evidence to rank it by, so a
-    family that fits is kept before a determined pose that does not. With a prior: all True."""
-    if prior is not None:
-        return np.ones(len(facets), bool)
-    chi2 = _contact_chi2(model, contacts, facets, poses, tolerance, point_to_facet) + outlier_penalty(facets)
-    return chi2 <= fit_threshold(contacts.n)
 
 
 def nearest_facets(model, contacts, facets, poses):
