@@ -30,7 +30,7 @@ import numpy as np
 from contactpose.contacts import Contacts, Tolerance
 from contactpose.errors import ContactPoseError
 from contactpose.solvers import factor_graph as fg
-from contactpose.types import PosePrior
+from contactpose.types import PosePrior, check_rigid
 
 #: iSAM2 relinearises every variable whose update exceeds this (tangent norm) at every update.
 RELINEARIZE_THRESHOLD = 1e-8
@@ -78,7 +78,7 @@ class PoseTrack:
         factors, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         if prior is not None:
             factors.add(fg.prior_factor(prior, key=0))
-        values.insert(0, gtsam.Pose3(np.asarray(pose, dtype=np.float64)))
+        values.insert(0, gtsam.Pose3(check_rigid(pose, "start pose")))
         self._update(factors, values, contacts, facets)
 
     def add(self, contacts, facets, hand_motion=None):
@@ -90,7 +90,7 @@ class PoseTrack:
         if hand_motion is not None:
             delta, sigma_rot_deg, sigma_trans = hand_motion
             k = len(self.hand)
-            self.hand.append(np.asarray(delta, dtype=np.float64) @ self.hand[-1])
+            self.hand.append(check_rigid(delta, "hand motion") @ self.hand[-1])
             factors.add(gtsam.BetweenFactorPose3(k - 1, k, gtsam.Pose3(), hand_motion_noise(sigma_rot_deg, sigma_trans)))
             values.insert(k, self._estimate.atPose3(k - 1))  # Y_k predicted: no slip
         self._update(factors, values, contacts, facets)

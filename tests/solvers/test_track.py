@@ -137,6 +137,8 @@ def test_bad_input_is_named(rock_model):
     track = PoseTrack(rock, g.contacts, g.facets, g.pose, tol)
     with pytest.raises(ContactPoseError, match="slip sigmas must be positive"):
         track.add(g.contacts, g.facets, hand_motion=(np.eye(4), 0.0, 0.01))
+    with pytest.raises(ContactPoseError, match="hand motion is not rigid"):
+        track.add(g.contacts, g.facets, hand_motion=(2 * np.eye(4), 1.0, 0.01))
     with pytest.raises(ContactPoseError, match="contacts must be a contactpose.Contacts"):
         track.add(g.contacts.points, g.facets)
     assert isinstance(g.contacts, Contacts)
