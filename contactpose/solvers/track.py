@@ -46,6 +46,11 @@ def hand_motion_noise(sigma_rot_deg, sigma_trans):
     return gtsam.noiseModel.Diagonal.Sigmas(s)
 
 
+def _check_contacts(contacts):
+    if not isinstance(contacts, Contacts):
+        raise ContactPoseError(f"contacts must be a contactpose.Contacts, got {type(contacts).__name__}")
+
+
 class PoseTrack:
     """The trajectory of one hypothesis (its facets at each touch) in an iSAM2 smoother.
 
@@ -81,31 +86,38 @@ class PoseTrack:
         values.insert(0, gtsam.Pose3(check_rigid(pose, "start pose")))
         self._update(factors, values, contacts, facets)
 
-    def add(self, contacts, facets, hand_motion=None):
-        """One more touch: its contacts (world frame) and facets (n,) int; hand_motion :
-        None (the object has not moved: the contacts join the last pose's factor graph, no new
-        variable) or (ΔT (4, 4), σ_rot in degrees, σ_trans), the hand's motion since the last
-        touch and the slip (a new pose variable). Returns the smoothed current pose (4, 4)."""
-        factors, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+    def add(self, contacts, facets=None, hand_motion=None):
+        """One more touch: its contacts (world frame) and facets (n,) int, or None for each
+        contact's best-fitting facet under the predicted pose (factor_graph.nearest_fit_facets;
+        the prediction is ΔT times the last smoothed pose: no slip); hand_motion : None (the
+        object has not moved: the contacts join the last pose's factor graph, no new variable)
+        or (ΔT (4, 4), σ_rot in degrees, σ_trans), the hand's motion since the last touch and
+        the slip (a new pose variable). Returns the smoothed current pose (4, 4)."""
+        factors, values, hand = gtsam.NonlinearFactorGraph(), gtsam.Values(), None
+        _check_contacts(contacts)
         if hand_motion is not None:
             delta, sigma_rot_deg, sigma_trans = hand_motion
+            noise = hand_motion_noise(sigma_rot_deg, sigma_trans)
+            hand = check_rigid(delta, "hand motion") @ self.hand[-1]
             k = len(self.hand)
-            self.hand.append(check_rigid(delta, "hand motion") @ self.hand[-1])
-            factors.add(gtsam.BetweenFactorPose3(k - 1, k, gtsam.Pose3(), hand_motion_noise(sigma_rot_deg, sigma_trans)))
+            factors.add(gtsam.BetweenFactorPose3(k - 1, k, gtsam.Pose3(), noise))
             values.insert(k, self._estimate.atPose3(k - 1))  # Y_k predicted: no slip
-        self._update(factors, values, contacts, facets)
+        if facets is None:
+            facets = self.associate(contacts, hand)
+        self._update(factors, values, contacts, facets, hand)
         return self.pose
 
-    def _update(self, factors, values, contacts, facets):
-        """The contact factor of a touch on the last pose variable, with ``factors`` and new
-        ``values``: one iSAM2 update."""
-        k = len(self.hand) - 1
-        if not isinstance(contacts, Contacts):
-            raise ContactPoseError(f"contacts must be a contactpose.Contacts, got {type(contacts).__name__}")
+    def _update(self, factors, values, contacts, facets, hand=None):
+        """The contact factor of a touch on the last pose variable (a new one, at hand pose
+        ``hand``, when given), with ``factors`` and new ``values``: one iSAM2 update."""
+        _check_contacts(contacts)
         facets = np.asarray(facets)
         if facets.shape != (contacts.n,) or facets.min() < -1 or facets.max() >= self.model.num_facets:
             raise ContactPoseError(f"facets must be {contacts.n} indices into the model's {self.model.num_facets} "
                                    f"facets (-1: unassigned), got {facets.tolist()}")
+        if hand is not None:
+            self.hand.append(hand)
+        k = len(self.hand) - 1
         local = contacts.transformed(np.linalg.inv(self.hand[k]))
         data = fg.pack_contacts(self.model, local, facets)
         for i in range(factors.size()):
@@ -119,8 +131,14 @@ class PoseTrack:
             self.isam.update(factors, values)
         except RuntimeError as err:  # indeterminant system: the touches so far leave directions free
             raise ContactPoseError(f"pose {k}: the contacts so far leave pose directions free; give a prior "
-                                   f"or more contacts ({err})") from None
+                                   f"or more contacts ({type(err).__name__})") from None
         self._estimate = self.isam.calculateEstimate()
+
+    def associate(self, contacts, hand=None):
+        """Each contact's best-fitting facet under the predicted pose: the hand pose (``hand``,
+        default the last) times the last smoothed Y. -> (n,) int"""
+        predicted = (self.hand[-1] if hand is None else hand) @ self._y(len(self.hand) - 1)
+        return fg.nearest_fit_facets(self.model, contacts, predicted, self.tolerance)
 
     def _y(self, k):
         return self._estimate.atPose3(k).matrix()

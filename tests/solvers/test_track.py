@@ -62,6 +62,19 @@ def test_exact_touches_give_the_true_trajectory(rock_model):
     np.testing.assert_allclose(poses, truth, atol=1e-8 * rock.diameter)
 
 
+def test_associated_facets_track_the_truth(rock_model):
+    """Touches given without facets: each contact takes its best-fitting facet under the
+    predicted pose. Noise-free touches with exact hand motions: those are the true facets
+    (or coplanar ones), and the trajectory is the true one."""
+    rock = rock_model
+    rng = np.random.default_rng(5)
+    truth, touches = _sequence(rock, rng, 10, noise=0.0, slip=0.0)
+    track = _track(rock, touches[:1], truth[0], _tolerance(rock))
+    for contacts, facets, motion in touches[1:]:
+        track.add(contacts, hand_motion=motion)
+    np.testing.assert_allclose(track.relinearize(), truth, atol=1e-8 * rock.diameter)
+
+
 @pytest.mark.parametrize("seed", range(8))
 def test_isam2_equals_batch_lm_on_the_same_graph(rock_model, seed):
     """Noisy contacts and slip, contact factors without the point-to-facet term (a smooth
@@ -141,4 +154,8 @@ def test_bad_input_is_named(rock_model):
         track.add(g.contacts, g.facets, hand_motion=(2 * np.eye(4), 1.0, 0.01))
     with pytest.raises(ContactPoseError, match="contacts must be a contactpose.Contacts"):
         track.add(g.contacts.points, g.facets)
+    with pytest.raises(ContactPoseError, match="facets must be 4 indices"):
+        track.add(g.contacts, g.facets[:2], hand_motion=(np.eye(4), 1.0, 0.01))
+    track.add(g.contacts, g.facets, hand_motion=(np.eye(4), 1.0, 0.01))  # the refused touches left no trace
+    assert len(track.poses) == 2 and len(track.hand) == 2
     assert isinstance(g.contacts, Contacts)
