@@ -147,3 +147,14 @@ def test_outlier_fingers_quick_writes_prefixed_files_and_names_the_bad_finger(tm
          "outliers_run.json", "outliers.png", "outliers.pdf"])
     c = sweep.read_columns(a / "outliers_grasps.csv")
     assert np.all(c["true_found"] == 1) and np.mean(c["named"]) >= 0.5
+
+
+def test_sequential_smoke(tmp_path):
+    """experiments/sequential.py on the rock, one short sequence: a row per touch and method,
+    finite errors for the track, and the summary table."""
+    assert run_all.load("sequential").main(["rock", "--sequences", "1", "--steps", "3", "--out", str(tmp_path)]) == 0
+    rows = sweep.read_rows(tmp_path / "steps.csv")
+    assert len(rows) == 9
+    track = [r for r in rows if r["method"] == "track"]
+    assert all(np.isfinite(float(r["rot_deg"])) for r in track)
+    assert "| track |" in (tmp_path / "summary.md").read_text()
