@@ -10,10 +10,12 @@ a known random hand motion (rotation N(0, hand_rot_deg²) per axis, translation 
 per axis, with 2 new fingertip contacts. Sensor noise as in the realistic-contacts benchmark.
 Per touch, three estimates of the current pose:
 
-* ``track``: ``PoseTrack`` started from localize's best on the first grasp, told the hand
-  motions and the slip sigmas; each contact takes its best-fitting facet under the predicted
-  pose; one iSAM2 update per touch;
-* ``batch``: Levenberg–Marquardt on the same graph from the same initial values, every touch;
+* ``track``: a ``TrackSet`` (iSAM2 per track, at most 20) started from every distinct pose
+  that localize lists for the first grasp (``keep="all"``), told the hand motions and the slip
+  sigmas; each contact takes its best-fitting facet under each track's predicted pose; one
+  iSAM2 update per track and touch; the best track's pose (least sequential χ²);
+* ``batch``: Levenberg–Marquardt on the best track's graph from the same initial values,
+  every touch;
 * ``relocalize``: ``localize`` from scratch on the last 4 contacts (this touch's 2 and the
   previous touch's 2, moved by the known hand motion), its best.
 
@@ -41,7 +43,7 @@ from contactpose.geometry.sampling import perturb_normals
 from contactpose.model.object_model import merged_mesh
 from contactpose.sim import fingertip, objects
 from contactpose.sim import grasps as simulate
-from contactpose.solvers.track import PoseTrack
+from contactpose.solvers.track import TrackSet
 
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "results" / "sequential"
@@ -78,20 +80,20 @@ def sequence(model, mesh, rng, s, seq):
     noise = dict(position_noise=tol.position_noise, normal_noise_deg=s["normal_noise_deg"])
     X = simulate.random_pose(rng, max_translation=0.5 * d)
     first = touch(model, *mesh, rng, X, 4, s)
-    r = localize(model, first, **noise)
+    r = localize(model, first, keep="all", **noise)
     if r.best is None:
         return []
-    track = PoseTrack(model, first, r.best.facets, r.best.pose, tol)
+    tracks = TrackSet(model, first, [(h.facets, h.pose) for h in r.hypotheses], tol)
     rows, last = [], first
     for k in range(1, s["steps"] + 1):
         delta = motion(rng, s["hand_rot_deg"], s["hand_trans_frac"] * d)
         X = delta @ X @ motion(rng, s["slip_deg"], s["slip_trans_frac"] * d)
         contacts = touch(model, *mesh, rng, X, 2, s)
         clock = time.perf_counter()
-        est = {"track": track.add(contacts, hand_motion=(delta, s["slip_deg"], s["slip_trans_frac"] * d))}
+        est = {"track": tracks.add(contacts, hand_motion=(delta, s["slip_deg"], s["slip_trans_frac"] * d))}
         ms = {"track": 1e3 * (time.perf_counter() - clock)}
         clock = time.perf_counter()
-        est["batch"] = track.batch()[-1]
+        est["batch"] = tracks.best.batch()[-1]
         ms["batch"] = 1e3 * (time.perf_counter() - clock)
         moved = last.transformed(delta)
         both = Contacts(np.vstack([moved.points[-2:], contacts.points]),

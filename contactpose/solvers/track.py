@@ -28,12 +28,19 @@ import gtsam
 import numpy as np
 
 from contactpose.contacts import Contacts, Tolerance
-from contactpose.errors import ContactPoseError
+from contactpose.errors import ContactPoseError, check_count
 from contactpose.solvers import factor_graph as fg
 from contactpose.types import PosePrior, check_rigid
 
 #: iSAM2 relinearises every variable whose update exceeds this (tangent norm) at every update.
 RELINEARIZE_THRESHOLD = 1e-8
+#: TrackSet: tracks kept, the χ² margin above the best beyond which a track is dropped
+#: (χ²₆ at 1 - 1e-6: a pose that much less likely than the best), and the distance within which
+#: two tracks are one pose (rotation in degrees, translation as a fraction of the diameter).
+MAX_TRACKS = 20
+PRUNE_CHI2 = 38.26
+MERGE_DEG = 2.0
+MERGE_FRAC = 0.02
 #: LM settings of the batch reference.
 BATCH = dict(max_iterations=100, relative_tol=1e-12, absolute_tol=1e-14)
 
@@ -73,6 +80,7 @@ class PoseTrack:
         self.spread = gtsam.NonlinearFactorGraph()  # the same without point-to-facet rows (covariance)
         self.spread_params = fg.kernel_params(tolerance, robust, point_to_facet=False)
         self.initial = gtsam.Values()
+        self.score = 0.0  # Σ over touches of the touch's contact χ² just after its update
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(RELINEARIZE_THRESHOLD)
         params.relinearizeSkip = 1
@@ -133,6 +141,7 @@ class PoseTrack:
             raise ContactPoseError(f"pose {k}: the contacts so far leave pose directions free; give a prior "
                                    f"or more contacts ({type(err).__name__})") from None
         self._estimate = self.isam.calculateEstimate()
+        self.score += 2.0 * factors.at(factors.size() - 1).error(self._estimate)
 
     def associate(self, contacts, hand=None):
         """Each contact's best-fitting facet under the predicted pose: the hand pose (``hand``,
@@ -191,3 +200,62 @@ class PoseTrack:
         """The same graph solved by LM from the same initial values. -> (K, 4, 4) T_world_object"""
         result = gtsam.LevenbergMarquardtOptimizer(self.graph, self.initial, fg.lm_params(**BATCH)).optimize()
         return np.stack([h @ result.atPose3(k).matrix() for k, h in enumerate(self.hand)])
+
+
+class TrackSet:
+    """Several hypotheses of one object tracked side by side, best first.
+
+    Each is a :class:`PoseTrack`, scored by its sequential χ² (:attr:`PoseTrack.score`: each
+    touch's contact χ² just after its update, so a wrong hypothesis pays for every touch that
+    it explains badly). After each touch, tracks whose pose coincides with a better one's
+    (rotation within ``merge_deg`` and translation within ``merge_frac`` of the diameter) are
+    merged into it, those more than ``prune_chi2`` above the best are dropped, and at most
+    ``max_tracks`` are kept.
+
+    model, contacts, tolerance : as for PoseTrack; starts : [(facets (n,) int, pose (4, 4))],
+    best first (for example a Result's hypotheses); robust : the contact factor's kernel.
+    """
+
+    def __init__(self, model, contacts, starts, tolerance, *, max_tracks=MAX_TRACKS, prune_chi2=PRUNE_CHI2,
+                 merge_deg=MERGE_DEG, merge_frac=MERGE_FRAC, robust="huber"):
+        if not starts:
+            raise ContactPoseError("a TrackSet needs at least one start (facets, pose)")
+        self.max_tracks, self.prune_chi2 = check_count(max_tracks, "max_tracks", minimum=1), float(prune_chi2)
+        self.merge = (float(merge_deg), float(merge_frac) * model.diameter)
+        self.tracks = []
+        for facets, pose in starts[:self.max_tracks]:
+            try:
+                self.tracks.append(PoseTrack(model, contacts, facets, pose, tolerance, robust=robust))
+            except ContactPoseError:  # a pose family: it cannot start a track without a prior
+                continue
+        if not self.tracks:
+            raise ContactPoseError("no start determines the pose: give starts whose contacts fix it")
+        self._prune()
+
+    def add(self, contacts, hand_motion=None):
+        """One more touch for every track (facets associated per track). -> the best pose (4, 4)"""
+        for t in self.tracks:
+            t.add(contacts, hand_motion=hand_motion)
+        self._prune()
+        return self.best.pose
+
+    @property
+    def best(self):
+        """The track with the least sequential χ²."""
+        return self.tracks[0]
+
+    def _prune(self):
+        self.tracks.sort(key=lambda t: t.score)
+        kept = []
+        for t in self.tracks:
+            if t.score > self.tracks[0].score + self.prune_chi2 or len(kept) == self.max_tracks:
+                break
+            if not any(_same_pose(t.pose, k.pose, *self.merge) for k in kept):
+                kept.append(t)
+        self.tracks = kept
+
+
+def _same_pose(a, b, max_deg, max_trans):
+    """Whether two poses (4, 4) are within max_deg of rotation and max_trans of translation."""
+    cos = np.clip((np.trace(a[:3, :3].T @ b[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
+    return np.degrees(np.arccos(cos)) <= max_deg and np.linalg.norm(a[:3, 3] - b[:3, 3]) <= max_trans

@@ -10,7 +10,7 @@ from contactpose.contacts import Contacts, Tolerance
 from contactpose.errors import ContactPoseError
 from contactpose.sim import grasps as simulate
 from contactpose.solvers import factor_graph as fg
-from contactpose.solvers.track import PoseTrack
+from contactpose.solvers.track import PoseTrack, TrackSet
 from contactpose.types import PosePrior
 
 
@@ -159,3 +159,22 @@ def test_bad_input_is_named(rock_model):
     track.add(g.contacts, g.facets, hand_motion=(np.eye(4), 1.0, 0.01))  # the refused touches left no trace
     assert len(track.poses) == 2 and len(track.hand) == 2
     assert isinstance(g.contacts, Contacts)
+
+
+def test_track_set_keeps_the_hypothesis_that_explains_the_touches(rock_model):
+    """Two starts, a wrong assignment first (the first grasp's facets permuted): its sequential
+    χ² puts it behind, it is pruned, and the best track follows the truth. Two starts on the
+    same pose are merged into one."""
+    rock = rock_model
+    rng = np.random.default_rng(9)
+    truth, touches = _sequence(rock, rng, 8, noise=1.0, slip=1.0)
+    contacts, facets, _ = touches[0]
+    wrong = facets[[1, 2, 3, 0]]
+    tracks = TrackSet(rock, contacts, [(wrong, truth[0]), (facets, truth[0]), (facets, truth[0])], _tolerance(rock))
+    assert len(tracks.tracks) == 1
+    for contacts, _, motion in touches[1:]:
+        pose = tracks.add(contacts, hand_motion=motion)
+    assert np.degrees(Rotation.from_matrix(pose[:3, :3].T @ truth[-1][:3, :3]).magnitude()) < 3.0
+    assert np.linalg.norm(pose[:3, 3] - truth[-1][:3, 3]) < 0.02 * rock.diameter
+    with pytest.raises(ContactPoseError, match="at least one start"):
+        TrackSet(rock, contacts, [], _tolerance(rock))
