@@ -53,7 +53,8 @@ def _unit(name, normals):
 
 @dataclass(frozen=True, init=False)
 class Contacts:
-    """n >= 2 measured contacts in the world frame.
+    """n >= 1 measured contacts in the world frame (``localize`` needs n >= 2; a touch of a
+    tracked object may bring one).
 
     points : (n, 3) float; finger_normals : (n, 3) float, unit; spread : the largest
     distance between two contacts. Give exactly one of
@@ -68,8 +69,8 @@ class Contacts:
         if (finger_normals is None) == (object_normals is None):
             raise ContactsError("give exactly one of finger_normals or object_normals")
         pts = _as_vectors("points", points)
-        if len(pts) < 2:
-            raise ContactsError(f"need at least 2 contacts, got {len(pts)}")
+        if len(pts) < 1:
+            raise ContactsError("need at least 1 contact, got 0")
         if finger_normals is not None:
             normals = _unit("finger_normals", _as_vectors("finger_normals", finger_normals, len(pts)))
         else:

@@ -458,6 +458,8 @@ def _check_options(method, solver, top, contacts, prior):
     check_count(top, "top", allow_none=True)
     if not isinstance(contacts, Contacts):
         raise ContactPoseError(f"contacts must be a contactpose.Contacts, got {type(contacts).__name__}")
+    if contacts.n < 2:
+        raise ContactsError(f"need at least 2 contacts, got {contacts.n}")
     if prior is not None and not isinstance(prior, PosePrior):
         raise ContactPoseError(f"prior must be a contactpose.PosePrior or None, got {type(prior).__name__}")
     return method, solver

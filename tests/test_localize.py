@@ -90,8 +90,9 @@ def test_contacts_validation():
         Contacts(pts, finger_normals=n, object_normals=n)
     with pytest.raises(ContactsError, match="exactly one"):
         Contacts(pts)
-    with pytest.raises(ContactsError, match="at least 2"):
-        Contacts(pts[:1], finger_normals=n[:1])
+    with pytest.raises(ContactsError, match="at least 1 contact"):
+        Contacts(pts[:0], finger_normals=n[:0])
+    assert Contacts(pts[:1], finger_normals=n[:1]).n == 1  # a touch may bring one contact
     with pytest.raises(ContactsError, match="shape"):
         Contacts(pts, finger_normals=n[:2])
     with pytest.raises(ContactsError, match="NaN"):
@@ -689,3 +690,9 @@ def test_keep_is_checked(rock_model):
     g = simulate.grasp(rock_model, np.random.default_rng(1), n=4, **NOISE)
     with pytest.raises(ContactPoseError, match="keep must be one of"):
         localize(rock_model, g.contacts, **NOISE, keep="some")
+
+
+def test_localize_needs_two_contacts(banana_model):
+    """One contact is a Contacts (a touch of a tracked object), not a grasp localize can answer."""
+    with pytest.raises(ContactsError, match="need at least 2 contacts, got 1"):
+        localize(banana_model, Contacts(np.zeros((1, 3)), finger_normals=[[0, 0, 1.0]]))

@@ -68,6 +68,8 @@ def parse_contacts(data):
         raise ContactsError("all contacts must give the same kind of normal (finger_normal or object_normal), got both kinds")
     if not points:
         raise ContactsError("contacts file lists no contacts; need at least 2")
+    if len(points) < 2:
+        raise ContactsError(f"need at least 2 contacts, got {len(points)}")
     key = "finger_normals" if kinds == {"finger_normal"} else "object_normals"
     return Contacts(np.array(points), **{key: np.array(normals)})
 

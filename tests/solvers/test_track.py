@@ -22,7 +22,7 @@ def _motion(rng, rot_deg, trans):
     return T
 
 
-def _sequence(model, rng, steps, *, noise, slip):
+def _sequence(model, rng, steps, *, noise, slip, per_touch=2):
     """A held object: a first grasp of 4 contacts, then ``steps`` hand motions (10°, 5 % of the
     diameter) with a slip of (slip°, slip % of the diameter) and 2 contacts each.
     -> true poses (steps + 1, 4, 4), the touches [(contacts, facets, hand motion or None)]"""
@@ -33,7 +33,7 @@ def _sequence(model, rng, steps, *, noise, slip):
     for _ in range(steps):
         delta = _motion(rng, 10.0, 0.05 * d)
         X = delta @ X @ (_motion(rng, slip, 0.01 * slip * d) if slip else np.eye(4))
-        g = simulate.grasp(model, rng, n=2, pose=X, position_noise=sx, normal_noise_deg=sn)
+        g = simulate.grasp(model, rng, n=per_touch, pose=X, position_noise=sx, normal_noise_deg=sn)
         truth.append(X)
         touches.append((g.contacts, g.facets, (delta, max(slip, 0.1), 0.01 * max(slip, 0.1) * d)))
     return np.stack(truth), touches
@@ -73,6 +73,21 @@ def test_associated_facets_track_the_truth(rock_model):
     for contacts, facets, motion in touches[1:]:
         track.add(contacts, hand_motion=motion)
     np.testing.assert_allclose(track.relinearize(), truth, atol=1e-8 * rock.diameter)
+
+
+def test_single_contact_touches(rock_model):
+    """One contact per touch, facets associated: noise-free touches give the true trajectory,
+    and noisy ones (slip of 1° and 1 % of the diameter a touch) stay within a few degrees."""
+    rock = rock_model
+    rng = np.random.default_rng(6)
+    for noise, median_deg, max_deg in ((0.0, 1e-6, 1e-6), (1.0, 3.0, 10.0)):
+        truth, touches = _sequence(rock, rng, 12, noise=noise, slip=noise, per_touch=1)
+        track = _track(rock, touches[:1], truth[0], _tolerance(rock))
+        for contacts, _, motion in touches[1:]:
+            track.add(contacts, hand_motion=motion)
+        errors = [np.degrees(Rotation.from_matrix(a[:3, :3].T @ b[:3, :3]).magnitude())
+                  for a, b in zip(track.relinearize(), truth)]
+        assert np.median(errors) < median_deg and max(errors) < max_deg
 
 
 @pytest.mark.parametrize("seed", range(8))
