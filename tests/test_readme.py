@@ -40,5 +40,7 @@ def test_json_snippet_parses(text):
         assert data["schema_version"] == schema["properties"]["schema_version"]["const"]
     elif "contacts" in data:
         assert jsonfiles.parse_contacts(data).n == len(data["contacts"])
+    elif "steps" in data:
+        assert len(jsonfiles.parse_sequence(data)) == len(data["steps"])
     else:
         assert jsonfiles.parse_prior(data).pose.shape == (4, 4)

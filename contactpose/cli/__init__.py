@@ -1,4 +1,4 @@
-"""Command-line interface: ``contactpose build-model | localize | next-touch | demo | bench | scan``.
+"""Command-line interface: ``contactpose build-model | localize | next-touch | track | demo | bench | scan``.
 
 One module per subcommand, each with ``register(subparsers)`` and ``run(args)``. Exit
 codes (``EXIT_*`` in :mod:`contactpose.cli.common`): 0 success, 1 internal error, 2 bad
@@ -16,7 +16,7 @@ import sys
 import warnings
 
 from contactpose import __version__
-from contactpose.cli import build_model, localize, next_touch, objects, tools
+from contactpose.cli import build_model, localize, next_touch, objects, tools, track
 from contactpose.cli.common import (
     EXIT_BAD_INPUT,
     EXIT_CLOSED_PIPE,
@@ -53,6 +53,7 @@ def build_parser():
         scan.register(sub)
     localize.register(sub)
     next_touch.register(sub)
+    track.register(sub)
     tools.register(sub)
     objects.register(sub)
     return parser

@@ -50,8 +50,8 @@ def read_json(path, error):
         raise error(f"{path!r} is not a usable JSON file: {exc}") from None
 
 
-def parse_contacts(data):
-    """CONTACTS.json content -> Contacts."""
+def parse_contacts(data, minimum=2):
+    """CONTACTS.json content -> Contacts of at least ``minimum`` contacts."""
     if not isinstance(data, dict) or not isinstance(data.get("contacts"), list):
         raise ContactsError('contacts file must be an object {"contacts": [...]}, got ' + _brief(data))
     points, normals, kinds = [], [], set()
@@ -68,10 +68,45 @@ def parse_contacts(data):
         raise ContactsError("all contacts must give the same kind of normal (finger_normal or object_normal), got both kinds")
     if not points:
         raise ContactsError("contacts file lists no contacts; need at least 2")
-    if len(points) < 2:
-        raise ContactsError(f"need at least 2 contacts, got {len(points)}")
+    if len(points) < minimum:
+        raise ContactsError(f"need at least {minimum} contacts, got {len(points)}")
     key = "finger_normals" if kinds == {"finger_normal"} else "object_normals"
     return Contacts(np.array(points), **{key: np.array(normals)})
+
+
+def parse_sequence(data):
+    """SEQ.json content -> [(Contacts, hand motion (ΔT (4, 4), σ_rot_deg, σ_trans) or None,
+    true pose (4, 4) or None)], one per step. Step 0 is the first grasp (at least 2 contacts,
+    no hand motion); each later step holds at least one contact, and a hand motion unless the
+    object did not move."""
+    if not isinstance(data, dict) or not isinstance(data.get("steps"), list) or not data["steps"]:
+        raise ContactsError('sequence file must be an object {"steps": [...]} with at least one step, got '
+                            + _brief(data))
+    steps = []
+    for k, step in enumerate(data["steps"]):
+        if not isinstance(step, dict):
+            raise ContactsError(f'step {k} must be an object with "contacts", got {_brief(step)}')
+        try:
+            contacts = parse_contacts(step, minimum=2 if k == 0 else 1)
+        except ContactsError as exc:
+            raise ContactsError(f"step {k}: {exc}") from None
+        motion = step.get("hand_motion")
+        if motion is not None:
+            if k == 0:
+                raise ContactsError("step 0 is the first grasp: it has no hand_motion")
+            if not isinstance(motion, dict) or "delta" not in motion:
+                raise ContactsError(f'step {k} hand_motion must be an object with "delta", '
+                                    f'"sigma_rot_deg" and "sigma_trans", got {_brief(motion)}')
+            motion = (_matrix(motion["delta"], f"step {k} hand_motion delta", (4, 4)),
+                      *(_number(motion.get(key), f"step {k} hand_motion {key}", ContactsError) for key in SIGMA_KEYS))
+        truth = step.get("true_pose")
+        steps.append((contacts, motion, None if truth is None else _matrix(truth, f"step {k} true_pose", (4, 4))))
+    return steps
+
+
+def read_sequence(path):
+    """SEQ.json at ``path`` -> parse_sequence; ContactsError (or PriorError for a bad matrix)."""
+    return parse_sequence(read_json(path, ContactsError))
 
 
 def parse_prior(data):

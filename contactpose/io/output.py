@@ -6,7 +6,8 @@ schemas ship as package data, one per kind of output (``contactpose/data/<kind>.
 * "result": ``localize -o``, built by :meth:`contactpose.types.Result.to_dict`;
 * "touch": ``next-touch -o``, built by :func:`next_touch_dict`;
 * "scan_report": ``scan --report-json``, built by :func:`scan_report_dict`;
-* "bench": ``bench --json``, whose header is :func:`bench_header`.
+* "bench": ``bench --json``, whose header is :func:`bench_header`;
+* "track": ``track -o``, built by :func:`track_dict`.
 
 Rules shared by all: lengths in the mesh's (or cloud's) own unit, times in ms, angles in
 degrees unless ``units`` says radians; null means "not computed / not applicable", [] an
@@ -20,11 +21,13 @@ from importlib import resources
 
 from contactpose.types import SCHEMA_VERSION
 
-SCHEMA_KINDS = ("result", "touch", "scan_report", "bench")
+SCHEMA_KINDS = ("result", "touch", "scan_report", "bench", "track")
 #: Units of the next-touch JSON: lengths in mesh units, information in bits.
 TOUCH_UNITS = {"length": "mesh", "information": "bits"}
 #: Units of the scan report: lengths in the cloud's unit, times in ms, ``*_pct`` in % of the diameter.
 SCAN_UNITS = {"length": "cloud", "time": "ms", "relative": "percent of diameter"}
+#: Units of the track JSON: lengths in mesh units, angles in degrees, covariances in radians (rotation first).
+TRACK_UNITS = {"length": "mesh", "angle": "deg", "covariance_rotation": "rad"}
 #: Units of the bench report: lengths in mesh units, times in ms, memory in MiB, angles in degrees.
 BENCH_UNITS = {"length": "mesh", "time": "ms", "memory": "MiB", "angle": "deg"}
 
@@ -53,6 +56,23 @@ def next_touch_dict(result, touch):
         "hint": result.hint,
         "classes": [c.to_dict() for c in result.classes],
         "touch": touch.to_dict(),
+    }
+
+
+def track_dict(status, rows, tracks):
+    """The track JSON: the first grasp's localize status, the best track's pose at every step
+    (with its error where the sequence gives the true pose), and the tracks left at the end.
+
+    rows : [dict(step, pose (4, 4), tracks, score, rot_err_deg, trans_err)]; tracks : TrackSet.
+    """
+    return {
+        "schema_version": SCHEMA_VERSION,
+        "units": dict(TRACK_UNITS),
+        "status": status,
+        "steps": [{"step": r["step"], "pose": r["pose"].tolist(), "tracks": r["tracks"], "score": r["score"],
+                   "rot_err_deg": r["rot_err_deg"], "trans_err": r["trans_err"]} for r in rows],
+        "tracks": [{"pose": t.pose.tolist(), "score": t.score, "covariance": t.covariance.tolist()}
+                   for t in tracks.tracks],
     }
 
 
