@@ -29,6 +29,7 @@ import numpy as np
 
 from contactpose.contacts import Contacts, Tolerance
 from contactpose.errors import ContactPoseError, check_count
+from contactpose.geometry.metrics import rotation_error_deg, translation_error
 from contactpose.solvers import factor_graph as fg
 from contactpose.types import PosePrior, check_rigid
 
@@ -257,5 +258,4 @@ class TrackSet:
 
 def _same_pose(a, b, max_deg, max_trans):
     """Whether two poses (4, 4) are within max_deg of rotation and max_trans of translation."""
-    cos = np.clip((np.trace(a[:3, :3].T @ b[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)
-    return np.degrees(np.arccos(cos)) <= max_deg and np.linalg.norm(a[:3, 3] - b[:3, 3]) <= max_trans
+    return rotation_error_deg(a, b) <= max_deg and translation_error(a, b) <= max_trans
