@@ -96,6 +96,11 @@ class Contacts:
         R, t = T[:3, :3], T[:3, 3]
         return Contacts(self.points @ R.T + t, finger_normals=self.finger_normals @ R.T)
 
+    def joined(self, *others):
+        """These contacts followed by those of ``others`` (Contacts), in order."""
+        every = (self, *others)
+        return Contacts(np.vstack([c.points for c in every]), finger_normals=np.vstack([c.finger_normals for c in every]))
+
     def permuted(self, order):
         """The contacts in another finger order. order : (n,) int."""
         return Contacts(self.points[order], finger_normals=self.finger_normals[order])

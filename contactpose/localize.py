@@ -31,7 +31,15 @@ from contactpose.scoring.infacet import within_noise
 from contactpose.scoring.status import status as status_of
 from contactpose.scoring.status import units_message
 from contactpose.search.pairs import admissible_pairs, pair_conditions
-from contactpose.search.tree import TripleTest, expected_tuples, join_tuples, join_tuples_paper
+from contactpose.search.tree import (
+    SearchTree,
+    TripleTest,
+    expected_tuples,
+    extend_tuples,
+    join_tuples,
+    join_tuples_paper,
+    sorted_rows,
+)
 from contactpose.solvers import factor_graph as fg
 from contactpose.solvers.closed_form import fit_poses
 from contactpose.solvers.lm import fit_lm_all
@@ -69,14 +77,14 @@ EXPLOSION_CHECK_PAIRS = 10_000
 #: With keep="fitting", a search none of whose hypotheses fits within noise lists its best this many.
 POOR_FIT_LISTED = 10
 
-__all__ = ["classify", "drop_blocked", "find_pairs", "join_hypotheses", "listed_rows", "localize", "pose_hypotheses",
-           "rank_hypotheses", "refine_hypotheses", "search"]
+__all__ = ["classify", "drop_blocked", "find_pairs", "grow_tree", "join_hypotheses", "listed_rows", "localize",
+           "pose_hypotheses", "rank_hypotheses", "refine_hypotheses", "search"]
 
 
 def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prior=None,
              method="fast", solver=None, top=None, model_error=0.0, max_outliers=0, robust="huber",
              refine=DEFAULT_REFINE, samples=0, seed=None, sample_top=1, finger_radius=None,
-             time_limit=DEFAULT_TIME_LIMIT, progress=None, distinct=True, surface=False, keep="fitting"):
+             time_limit=DEFAULT_TIME_LIMIT, progress=None, distinct=True, surface=False, keep="fitting", tree=None):
     """Find every admissible finger-to-facet assignment and the object pose behind each.
 
     model : ObjectModel; contacts : Contacts (world frame); position_noise : per-axis σ of
@@ -112,6 +120,10 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
     within noise (the pose classes' members; the best POOR_FIT_LISTED when none fits, all of
     them at the time limit); "all" lists every distinct pose. ``result.num_hypotheses``
     counts them all either way. "fast" with distinct poses only.
+    tree : ``result.tree`` of an earlier localize of the first k of these contacts with the same
+    noise (a search.tree.SearchTree; "fast"): only the pairs of the new contacts with the others
+    are queried and its tuples grow by them, the same tree as a search of all (TouchSession
+    uses it). ``result.tree`` is this search's tree (None for "paper", or when the time limit cut it).
     """
     method, solver = _check_options(method, solver, top, contacts, prior)
     if keep not in KEEP:
@@ -127,11 +139,11 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
     _warn_units(model, contacts, tolerance)
     start = time.perf_counter()
     pose_solver = "closed-form" if solver == "factor-graph" else solver
-    arrays, timing = search(model, contacts, tolerance, method=method, solver=pose_solver, prior=prior,
-                            deadline=deadline, progress=progress)
+    arrays, timing, grown = search(model, contacts, tolerance, method=method, solver=pose_solver, prior=prior,
+                                   deadline=deadline, progress=progress, tree=tree)
     for dropped in _outlier_sets(contacts.n, max_outliers):
         fingers = np.setdiff1d(np.arange(contacts.n), dropped)
-        sub, sub_timing = search(model, contacts.permuted(fingers), tolerance, method=method, solver=pose_solver,
+        sub, sub_timing, _ = search(model, contacts.permuted(fingers), tolerance, method=method, solver=pose_solver,
                                  prior=prior, deadline=deadline, progress=progress)
         arrays = arrays.merged(sub.widened(fingers, contacts.n, len(dropped) * OUTLIER_PENALTY))
         timing = {k: timing[k] + sub_timing[k] for k in timing}
@@ -180,30 +192,33 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
         timing["sample"] = time.perf_counter() - sample_start
     timing["total"] = time.perf_counter() - start
     return Result(status, hypotheses, timing, method, solver, tolerance, hint, num_hypotheses=num, classes=classes,
-                  num_assignments=assignments)
+                  num_assignments=assignments, tree=grown)
 
 
 # ------------------------------------------------------------------ stages ---
 
-def search(model, contacts, tolerance, *, method="fast", solver=None, prior=None, deadline=None, progress=None):
+def search(model, contacts, tolerance, *, method="fast", solver=None, prior=None, deadline=None, progress=None,
+           tree=None):
     """All stages up to the ranking: S_ij -> tree -> poses -> ranked HypothesisArrays.
 
     deadline : a progress.Deadline. The tree may spend TREE_SHARE of what is left of it;
     the poses and the ranking then run POSE_CHUNK hypotheses at a time until it passes
-    (``deadline.hit`` tells whether anything stopped early). Returns (HypothesisArrays,
-    seconds per stage: "pairs", "tree", "pose", "rank").
+    (``deadline.hit`` tells whether anything stopped early). tree : a SearchTree of the first
+    contacts to extend (:func:`grow_tree`). Returns (HypothesisArrays, seconds per stage:
+    "pairs", "tree", "pose", "rank", the SearchTree of these contacts, or None for "paper"
+    and when the deadline cut the tree short).
     """
     solver = solver or ("closed-form" if method == "fast" else "lm")
     deadline = deadline or Deadline()
-    clock = [time.perf_counter()]
-    S = find_pairs(model, contacts, tolerance, method=method)
-    clock.append(time.perf_counter())
     tree_deadline = Deadline(None if deadline.seconds is None else TREE_SHARE * deadline.remaining())
-    facets = join_hypotheses(model, contacts, S, tolerance, method=method, prior=prior, deadline=tree_deadline,
-                             progress=progress, members_deadline=deadline)
+    grown, timing = grow_tree(model, contacts, tolerance, method=method, tree=tree, deadline=tree_deadline,
+                              progress=progress)
     deadline.hit |= tree_deadline.hit
-    clock.append(time.perf_counter())
-    timing = dict(zip(("pairs", "tree"), np.diff(clock).tolist()), pose=0.0, rank=0.0)
+    start = time.perf_counter()
+    facets = grown.tuples
+    if grown.units == "patches":
+        facets = _members_in_chunks(model, contacts, facets, tolerance, prior, deadline)
+    timing.update(tree=timing["tree"] + time.perf_counter() - start, pose=0.0, rank=0.0)
     arrays = None
     for lo in range(0, max(len(facets), 1), POSE_CHUNK):
         if lo and deadline.passed:
@@ -215,7 +230,63 @@ def search(model, contacts, tolerance, *, method="fast", solver=None, prior=None
         start = time.perf_counter()
         arrays = ranking.polish(model, contacts, arrays, tolerance)
         timing["pose"] += time.perf_counter() - start
-    return arrays, timing
+    return arrays, timing, None if method == "paper" or tree_deadline.hit else grown
+
+
+def grow_tree(model, contacts, tolerance, *, method="fast", tree=None, deadline=None, progress=None):
+    """S_ij and the tree T over the search units (facets; patches on a model of surface
+    regions with "fast"). -> (SearchTree, seconds: "pairs", "tree")
+
+    tree : the SearchTree of the first k of these contacts at this tolerance ("fast"): only
+    the pairs (i, j), j >= k, are queried and its tuples grow by contacts k, ..., n-1
+    (search.tree.extend_tuples), the same set as the tree of all pairs. "fast" rows are in
+    lexicographic order either way, so the stages after the tree see the same input.
+    """
+    fast = method == "fast"
+    patches = fast and model.patch_table is not None
+    units = "patches" if patches else "facets"
+    since = 0 if tree is None else _check_tree(contacts, tolerance, method, units, tree)
+    clock = [time.perf_counter()]
+    conditions = pair_conditions(contacts, since)
+    _check_span(model, conditions, tolerance)
+    S = admissible_pairs(model, conditions, tolerance, "exact" if fast else "paper", direction=fast, patches=patches)
+    clock.append(time.perf_counter())
+    if not fast:
+        _warn_explosion(S, contacts.n, tolerance, model)
+        tuples = join_tuples_paper(S, contacts.n, deadline=deadline, progress=progress)
+    else:
+        triple = _triple_test(model, contacts, tolerance, patches)
+        if since:
+            tuples = extend_tuples(tree.tuples, S, contacts.n, triple, deadline=deadline, progress=progress)
+        else:
+            _warn_explosion(S, contacts.n, tolerance, model, triple)
+            tuples = sorted_rows(join_tuples(S, contacts.n, triple, deadline=deadline, progress=progress))
+    clock.append(time.perf_counter())
+    return SearchTree(contacts, tolerance, units, tuples), dict(zip(("pairs", "tree"), np.diff(clock).tolist()))
+
+
+def _triple_test(model, contacts, tolerance, patches):
+    """The handedness test over the search units (a patch's normal cone as slack)."""
+    if patches:
+        return TripleTest(model.patches.normals, contacts.object_normals, tolerance.per_contact_bounds()[1],
+                          slack=model.patches.cone)
+    return TripleTest(model.planes.normals, contacts.object_normals, tolerance.per_contact_bounds()[1])
+
+
+def _check_tree(contacts, tolerance, method, units, tree):
+    """The number k of contacts ``tree`` was grown for, if these contacts extend them."""
+    if not isinstance(tree, SearchTree):
+        raise ContactPoseError(f"tree must be a Result's tree (a SearchTree) or None, got {type(tree).__name__}")
+    k = tree.contacts.n
+    if method != "fast" or tree.units != units:
+        raise ContactPoseError(f"tree was grown over {tree.units}; this search ({method!r}) runs over {units}")
+    if tree.tolerance != tolerance:
+        raise ContactPoseError(f"tree was grown at {tree.tolerance}, this search is at {tolerance}: same noise needed")
+    if k >= contacts.n or not (np.allclose(tree.contacts.points, contacts.points[:k], rtol=0.0, atol=1e-12)
+                               and np.allclose(tree.contacts.finger_normals, contacts.finger_normals[:k],
+                                               rtol=0.0, atol=1e-12)):
+        raise ContactPoseError(f"tree was grown for {k} contacts that are not the first {k} of these {contacts.n}")
+    return k
 
 
 def _pose_and_rank(model, contacts, facets, tolerance, method, solver, prior, deadline, progress, timing):
@@ -249,7 +320,7 @@ def join_hypotheses(model, contacts, S, tolerance, *, method="fast", prior=None,
     """The tree T over S_ij: facet tuples (H, n) int, one finger per column.
 
     "fast" joins level by level with the handedness test on triples (on patches, one
-    tuple per patch tuple: see :func:`_patch_hypotheses`); "paper" node by node (§3.2).
+    tuple per patch tuple: see :func:`_members_in_chunks`); "paper" node by node (§3.2).
     deadline : the tree's progress.Deadline; members_deadline : the one the patch tuples'
     member choice checks between chunks of POSE_CHUNK (default: deadline).
     Warns when the pair sets predict more than EXPLOSION_TUPLES tuples (search.tree.expected_tuples).
@@ -257,12 +328,14 @@ def join_hypotheses(model, contacts, S, tolerance, *, method="fast", prior=None,
     if method == "paper":
         _warn_explosion(S, contacts.n, tolerance, model)
         return join_tuples_paper(S, contacts.n, deadline=deadline, progress=progress)
-    if model.patch_table is not None:
-        return _patch_hypotheses(model, contacts, S, tolerance, prior, deadline, progress,
-                                 deadline if members_deadline is None else members_deadline)
-    triple = TripleTest(model.planes.normals, contacts.object_normals, tolerance.per_contact_bounds()[1])
+    patches = model.patch_table is not None
+    triple = _triple_test(model, contacts, tolerance, patches)
     _warn_explosion(S, contacts.n, tolerance, model, triple)
-    return join_tuples(S, contacts.n, triple, deadline=deadline, progress=progress)
+    tuples = join_tuples(S, contacts.n, triple, deadline=deadline, progress=progress)
+    if not patches:
+        return tuples
+    return _members_in_chunks(model, contacts, tuples, tolerance, prior,
+                              deadline if members_deadline is None else members_deadline)
 
 
 def pose_hypotheses(model, contacts, facets, tolerance, *, method="fast", solver=None, prior=None, deadline=None,
@@ -356,14 +429,9 @@ def classify(model, contacts, arrays, tolerance, *, method="fast", deadline=None
 
 # ----------------------------------------------------------------- helpers ---
 
-def _patch_hypotheses(model, contacts, S, tolerance, prior, deadline=None, progress=None, members_deadline=None):
-    """Facet tuples from the patch-level tree, one per patch tuple, their members chosen
-    POSE_CHUNK tuples at a time until members_deadline passes (:func:`_member_facets`)."""
-    patches = model.patches
-    triple = TripleTest(patches.normals, contacts.object_normals, tolerance.per_contact_bounds()[1],
-                        slack=patches.cone)
-    _warn_explosion(S, contacts.n, tolerance, model, triple)
-    tuples = join_tuples(S, contacts.n, triple, deadline=deadline, progress=progress)
+def _members_in_chunks(model, contacts, tuples, tolerance, prior, members_deadline=None):
+    """Facet tuples for patch tuples (H, n), one each, their members chosen POSE_CHUNK
+    tuples at a time until members_deadline passes (:func:`_member_facets`)."""
     parts = []
     for lo in range(0, max(len(tuples), 1), POSE_CHUNK):
         if lo and members_deadline is not None and members_deadline.passed:
@@ -424,7 +492,8 @@ def _widen(model, contacts, arrays, tolerance, solver, prior, deadline, progress
         wide = tolerance.widened(factor)
         if deadline.passed or contacts.spread > model.diameter + wide.distance:
             break
-        found, more = search(model, contacts, wide, solver=solver, prior=prior, deadline=deadline, progress=progress)
+        found, more, _ = search(model, contacts, wide, solver=solver, prior=prior, deadline=deadline,
+                                progress=progress)
         for key in timing:
             timing[key] += more[key]
         if len(found.cost):

@@ -273,7 +273,8 @@ class Result:
     """The outcome of :func:`localize`.
 
     status : "ok" | "no_hypothesis" | "underdetermined" | "ambiguous";
-    hypotheses : ranked list, best first; timing : seconds per stage; hint : why, when not ok.
+    hypotheses : ranked list, best first; timing : seconds per stage; hint : why, when not ok;
+    tree : the search's tree (a search.tree.SearchTree), for ``localize(..., tree=)`` to extend.
     """
 
     status: str
@@ -287,6 +288,7 @@ class Result:
     classes: list = field(default_factory=list)
     extra: dict = field(default_factory=dict)
     num_assignments: int | None = None
+    tree: object = field(default=None, repr=False, compare=False)
 
     def __post_init__(self):
         if self.num_assignments is None:

@@ -1,7 +1,8 @@
-"""Tracking an object held in a moving hand, touch after touch: PoseTrack (iSAM2) against
-re-localizing from scratch and batch LM, on the same sequences (first part of the
-"sequential" experiment; the particle-filter baseline and active localization are not yet
-in).
+"""Touch after touch: tracking an object held in a moving hand (TrackSet with iSAM2, batch
+LM, re-localizing from scratch, a particle filter, on the same sequences), and active
+localization of a static object (suggested touches against random ones).
+
+**Tracking** (``--part tracking``).
 
 A sequence: the object at a uniformly random pose; a first grasp of 4 rounded fingertips
 (sim.fingertip.approach, cone 30°) that ``localize`` answers; then ``steps`` touches, each after
@@ -17,13 +18,28 @@ Per touch, three estimates of the current pose:
 * ``batch``: Levenberg–Marquardt on the best track's graph from the same initial values,
   every touch;
 * ``relocalize``: ``localize`` from scratch on the last 4 contacts (this touch's 2 and the
-  previous touch's 2, moved by the known hand motion), its best.
+  previous touch's 2, moved by the known hand motion), its best;
+* ``pf``: baselines.MemoryParticleFilter, 1,000 particles started around localize's distinct
+  poses of the first grasp, told the hand motions and the slip sigmas, with a memory of the
+  last 4 contacts; its estimate.
 
 Rotation error (°) and translation error (mm) per touch; a track is lost when the last touch's
 error exceeds ``lost_deg`` or ``lost_frac`` of the diameter. Writes
-results/sequential/steps.csv (one row per sequence, touch and method) and summary.md::
+results/sequential/steps.csv (one row per sequence, touch and method) and summary.md;
+``--methods`` runs some of the methods and keeps the other methods' rows of steps.csv (the
+sequences are drawn from their own stream, so they are the same)::
 
-    .venv/bin/python experiments/sequential.py ycb:011_banana ycb:037_scissors --sequences 30
+    .venv/bin/python experiments/sequential.py ycb:011_banana ycb:037_scissors --sequences 100
+
+**Active localization** (``--part active``). A static object at a random pose, one contact per
+touch through a TouchSession: the first two touches are fingertip-free point contacts at
+random surface points (one contact has no pose classes to separate), then each touch is the
+probe that ``TouchSession.suggest_touch`` picks, or a random candidate probe
+(touch.random_touch), measured by touch.simulate_touch with the same noise. A probe that
+touches nothing counts as a touch. Touches until a single pose class (and until that class
+holds the truth) are counted, up to ``--max-touches``; writes active.csv and active.md::
+
+    .venv/bin/python experiments/sequential.py rock banana --part active --sequences 200
 """
 
 from __future__ import annotations
@@ -36,7 +52,9 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from contactpose import Contacts, ObjectModel, localize, sweep
+from contactpose import Contacts, ObjectModel, TouchSession, localize, sweep
+from contactpose import touch as touchmod
+from contactpose.baselines import MemoryParticleFilter, sample_surface
 from contactpose.contacts import Tolerance
 from contactpose.geometry import metrics
 from contactpose.geometry.sampling import perturb_normals
@@ -49,7 +67,11 @@ ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "results" / "sequential"
 SETTINGS = dict(steps=30, radius_frac=0.02, position_noise_frac=0.0025, normal_noise_deg=1.0, hand_rot_deg=10.0,
                 hand_trans_frac=0.1, slip_deg=1.0, slip_trans_frac=0.005, lost_deg=10.0, lost_frac=0.1, seed=18)
-METHODS = ("track", "batch", "relocalize")
+METHODS = ("track", "batch", "relocalize", "pf")
+STRATEGIES = ("suggested", "random")
+#: Particles of the particle-filter baseline.
+PARTICLES = 1000
+
 
 
 def motion(rng, rot_deg, trans):
@@ -72,9 +94,10 @@ def touch(model, vertices, faces, rng, pose, n, s):
     return Contacts(points, finger_normals=finger)
 
 
-def sequence(model, mesh, rng, s, seq):
+def sequence(model, mesh, rng, s, seq, methods=METHODS, surface=None):
     """The rows of one sequence: (sequence, touch, method, rotation error °, translation error
-    mm, milliseconds) for every touch and method."""
+    mm, milliseconds) for every touch and each of ``methods``. The sequence's draws come from
+    ``rng`` alone (the particle filter has its own stream), whatever the methods."""
     d = model.diameter
     tol = Tolerance.from_noise(s["position_noise_frac"] * d, s["normal_noise_deg"])
     noise = dict(position_noise=tol.position_noise, normal_noise_deg=s["normal_noise_deg"])
@@ -83,26 +106,24 @@ def sequence(model, mesh, rng, s, seq):
     r = localize(model, first, keep="all", **noise)
     if r.best is None:
         return []
-    tracks = TrackSet(model, first, [(h.facets, h.pose) for h in r.hypotheses], tol)
+    starts = [(h.facets, h.pose) for h in r.hypotheses]
+    tracks = TrackSet(model, first, starts, tol) if {"track", "batch"} & set(methods) else None
+    pf = None
+    if "pf" in methods:
+        pf = MemoryParticleFilter(model, surface, [p for _, p in starts], first, np.random.default_rng([s["seed"], seq]),
+                                  particles=PARTICLES, **noise)
     rows, last = [], first
     for k in range(1, s["steps"] + 1):
         delta = motion(rng, s["hand_rot_deg"], s["hand_trans_frac"] * d)
         X = delta @ X @ motion(rng, s["slip_deg"], s["slip_trans_frac"] * d)
         contacts = touch(model, *mesh, rng, X, 2, s)
-        clock = time.perf_counter()
-        est = {"track": tracks.add(contacts, hand_motion=(delta, s["slip_deg"], s["slip_trans_frac"] * d))}
-        ms = {"track": 1e3 * (time.perf_counter() - clock)}
-        clock = time.perf_counter()
-        est["batch"] = tracks.best.batch()[-1]
-        ms["batch"] = 1e3 * (time.perf_counter() - clock)
-        moved = last.transformed(delta)
-        both = Contacts(np.vstack([moved.points[-2:], contacts.points]),
-                        finger_normals=np.vstack([moved.finger_normals[-2:], contacts.finger_normals]))
-        clock = time.perf_counter()
-        again = localize(model, both, **noise)
-        ms["relocalize"] = 1e3 * (time.perf_counter() - clock)
-        est["relocalize"] = None if again.best is None else again.best.pose
-        for m in METHODS:
+        hand = (delta, s["slip_deg"], s["slip_trans_frac"] * d)
+        est, ms = {}, {}
+        for m in methods:
+            clock = time.perf_counter()
+            est[m] = _estimate(m, model, tracks, pf, last, contacts, hand, noise)
+            ms[m] = 1e3 * (time.perf_counter() - clock)
+        for m in methods:
             T = est[m]
             rot = np.nan if T is None else metrics.rotation_error_deg(T, X)
             trans = np.nan if T is None else 1e3 * metrics.translation_error(T, X)
@@ -111,52 +132,155 @@ def sequence(model, mesh, rng, s, seq):
     return rows
 
 
+def _estimate(method, model, tracks, pf, last, contacts, hand, noise):
+    """One method's pose after a touch (None: no answer). Track before batch: batch solves the
+    best track's graph, touch included."""
+    if method == "track":
+        return tracks.add(contacts, hand_motion=hand)
+    if method == "batch":
+        return tracks.best.batch()[-1]
+    if method == "pf":
+        return pf.add(contacts, hand)
+    moved = last.transformed(hand[0])
+    again = localize(model, moved.permuted([moved.n - 2, moved.n - 1]).joined(contacts), **noise)
+    return None if again.best is None else again.best.pose
+
+
 def summary(rows, d, s):
-    """Per method: error over all touches after the first (median, p90), the share of lost
-    tracks, and the time per touch (median, p95)."""
-    lines = ["| method | touches | rotation median / p90 (°) | translation median / p90 (mm) | lost | ms per touch median / p95 |",
-             "|---|---:|---:|---:|---:|---:|"]
-    for m in METHODS:
+    """Per method: error over all touches (median, p90), the worst touch's median (over the
+    sequences), the share of lost tracks, and the time per touch (median, p95)."""
+    lines = ["| method | touches | rotation median / p90 (°) | translation median / p90 (mm) | worst touch's median "
+             "(° / mm) | lost | ms per touch median / p95 |", "|---|---:|---:|---:|---:|---:|---:|"]
+    for m in [m for m in METHODS if any(r["method"] == m for r in rows)]:
         sel = [r for r in rows if r["method"] == m]
-        rot = np.array([float(r["rot_deg"]) for r in sel])
-        trans = np.array([float(r["trans_mm"]) for r in sel])
-        ms = np.array([float(r["ms"]) for r in sel])
-        last = {}
-        for r in sel:
-            last[r["sequence"]] = r
+        rot, trans, ms, step = (np.array([float(r[c]) for r in sel]) for c in ("rot_deg", "trans_mm", "ms", "touch"))
+        worst = [np.nanmedian(x[step == k]) for x in (rot, trans) for k in np.unique(step)]
+        half = len(worst) // 2
+        last = {r["sequence"]: r for r in sel}
         lost = np.mean([not (float(r["rot_deg"]) <= s["lost_deg"] and float(r["trans_mm"]) <= 1e3 * s["lost_frac"] * d)
                         for r in last.values()])
         lines.append(f"| {m} | {len(sel)} | {np.nanmedian(rot):.2f} / {np.nanpercentile(rot, 90):.2f} | "
-                     f"{np.nanmedian(trans):.2f} / {np.nanpercentile(trans, 90):.2f} | {lost:.1%} of {len(last)} | "
+                     f"{np.nanmedian(trans):.2f} / {np.nanpercentile(trans, 90):.2f} | "
+                     f"{max(worst[:half]):.2f} / {max(worst[half:]):.2f} | {lost:.1%} of {len(last)} | "
                      f"{np.median(ms):.2f} / {np.percentile(ms, 95):.2f} |")
     return "\n".join(lines)
+
+
+# ------------------------------------------------------------------ active localization
+
+def active_sequence(model, rng, s, strategy, max_touches):
+    """One static object localized touch by touch with one strategy. -> dict(touches until a
+    single pose class, touches until a single class holding the truth, misses, ms per plan);
+    counts are max_touches + 1 when not reached."""
+    d = model.diameter
+    noise = dict(position_noise=s["position_noise_frac"] * d, normal_noise_deg=s["normal_noise_deg"])
+    X = simulate.random_pose(rng, max_translation=0.5 * d)
+    session = TouchSession(model, **noise)
+    single = true = max_touches + 1
+    misses, plan_ms = 0, []
+    for k in range(1, max_touches + 1):
+        if session.contacts is None or session.contacts.n < 2:
+            r = session.add(simulate.grasp(model, rng, n=1, pose=X, **noise).contacts)
+        else:
+            clock = time.perf_counter()
+            probe = (session.suggest_touch(rng=rng) if strategy == "suggested"
+                     else touchmod.random_touch(model, session.result, rng=rng, contacts=session.contacts))
+            plan_ms.append(1e3 * (time.perf_counter() - clock))
+            measured = touchmod.simulate_touch(model, X, probe, rng, **noise)
+            if measured is None:
+                misses += 1
+                continue
+            r = session.add(Contacts(measured[0][None], object_normals=measured[1][None]))
+        if session.contacts.n >= 2 and len(r.classes) == 1:
+            single = min(single, k)
+            if _holds_truth(model, r, X):
+                true = k
+                break
+    return dict(touches_single=single, touches_true=true, misses=misses,
+                plan_ms=float(np.median(plan_ms)) if plan_ms else np.nan)
+
+
+def _holds_truth(model, result, X):
+    """Whether the single class's pose places the surface as the truth does (ADD-S)."""
+    adds = metrics.adds(result.classes[0].pose, X, model.surface_points, model.surface_tree)
+    return adds < metrics.SAME_CLASS_ADDS_FRAC * model.diameter
+
+
+def active_summary(rows, max_touches):
+    """Per object and strategy: touches to a single class and to the true one (median, p90)."""
+    lines = [f"| object | strategy | sequences | touches to one class, median / p90 | to the true class, median / p90 | "
+             f"not reached in {max_touches} | misses per sequence | ms per plan, median |",
+             "|---|---|---:|---:|---:|---:|---:|---:|"]
+    for name in dict.fromkeys(r["object"] for r in rows):
+        for strategy in STRATEGIES:
+            sel = [r for r in rows if r["object"] == name and r["strategy"] == strategy]
+            one, true = (np.array([float(r[c]) for r in sel]) for c in ("touches_single", "touches_true"))
+            lines.append(f"| {name} | {strategy} | {len(sel)} | {np.median(one):g} / {np.percentile(one, 90):g} | "
+                         f"{np.median(true):g} / {np.percentile(true, 90):g} | {np.mean(true > max_touches):.1%} | "
+                         f"{np.mean([float(r['misses']) for r in sel]):.2f} | "
+                         f"{np.nanmedian([float(r['plan_ms']) for r in sel]):.0f} |")
+    return "\n".join(lines)
+
+
+def run_active(names, args, s, out):
+    """Both strategies on the same objects at the same poses (the same first two touches)."""
+    rows = []
+    for index, name in enumerate(names):
+        model = ObjectModel.from_mesh(objects.load(name))
+        for strategy in STRATEGIES:
+            for q in range(args.sequences):
+                rng = np.random.default_rng([s["seed"], index, q])
+                rows.append(dict(object=name, sequence=q, strategy=strategy,
+                                 **active_sequence(model, rng, s, strategy, args.max_touches)))
+        sweep.write_rows(out / "active.csv", rows)
+    text = active_summary(rows, args.max_touches)
+    print(text, flush=True)
+    settings = ", ".join(f"{k} {s[k]}" for k in ("position_noise_frac", "normal_noise_deg", "seed"))
+    (out / "active.md").write_text(f"Settings: {settings}, max touches {args.max_touches}.\n\n{text}\n")
+
+
+# ------------------------------------------------------------------ tracking
+
+def run_tracking(names, args, s, out):
+    """The tracking part; with a subset of methods, steps.csv keeps the other methods' rows."""
+    methods = tuple(args.methods)
+    old = sweep.read_rows(out / "steps.csv") if (out / "steps.csv").exists() and set(methods) != set(METHODS) else []
+    kept = [r for r in old if r["method"] not in methods]
+    text, all_rows = [], []
+    for index, name in enumerate(names):
+        model = ObjectModel.from_mesh(objects.load(name))
+        merged = merged_mesh(model.vertices, model.faces)
+        mesh = (np.asarray(merged.vertices), np.asarray(merged.faces))
+        surface = sample_surface(model, neighbour_radius=None) if "pf" in methods else None
+        rng = np.random.default_rng([s["seed"], index])
+        clock = time.perf_counter()
+        rows = [dict(object=name, **r) for q in range(args.sequences)
+                for r in sequence(model, mesh, rng, s, q, methods, surface)]
+        all_rows += rows
+        mine = rows + [r for r in kept if r["object"] == name and int(r["sequence"]) < args.sequences]
+        text += [f"## {name}: {args.sequences} sequences of {s['steps']} touches, {time.perf_counter() - clock:.0f} s",
+                 "", summary(mine, model.diameter, s), ""]
+        print("\n".join(text[-4:]), flush=True)
+        sweep.write_rows(out / "steps.csv", kept + all_rows)
+    settings = ", ".join(f"{k} {v}" for k, v in s.items())
+    (out / "summary.md").write_text(f"Settings: {settings}.\n\n" + "\n".join(text))
 
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("objects", nargs="+")
+    parser.add_argument("--part", choices=("tracking", "active"), default="tracking")
     parser.add_argument("--sequences", type=int, default=30)
     parser.add_argument("--steps", type=int, default=SETTINGS["steps"], help="touches after the first grasp")
+    parser.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS), help="tracking methods to run")
+    parser.add_argument("--max-touches", type=int, default=15, help="active: touches per sequence at most")
     parser.add_argument("--out", default=str(OUT))
     args = parser.parse_args(argv)
     warnings.simplefilter("ignore")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    s, text, all_rows = dict(SETTINGS, steps=args.steps), [], []
-    for index, name in enumerate(args.objects):
-        model = ObjectModel.from_mesh(objects.load(name))
-        merged = merged_mesh(model.vertices, model.faces)
-        mesh = (np.asarray(merged.vertices), np.asarray(merged.faces))
-        rng = np.random.default_rng([s["seed"], index])
-        clock = time.perf_counter()
-        rows = [dict(object=name, **r) for q in range(args.sequences) for r in sequence(model, mesh, rng, s, q)]
-        all_rows += rows
-        text += [f"## {name}: {args.sequences} sequences of {s['steps']} touches, {time.perf_counter() - clock:.0f} s",
-                 "", summary(rows, model.diameter, s), ""]
-        print("\n".join(text[-4:]), flush=True)
-        sweep.write_rows(out / "steps.csv", all_rows)
-    settings = ", ".join(f"{k} {v}" for k, v in s.items())
-    (out / "summary.md").write_text(f"Settings: {settings}.\n\n" + "\n".join(text))
+    s = dict(SETTINGS, steps=args.steps)
+    (run_active if args.part == "active" else run_tracking)(args.objects, args, s, out)
     return 0
 
 

@@ -150,11 +150,52 @@ def test_outlier_fingers_quick_writes_prefixed_files_and_names_the_bad_finger(tm
 
 
 def test_sequential_smoke(tmp_path):
-    """experiments/sequential.py on the rock, one short sequence: a row per touch and method,
-    finite errors for the track, and the summary table."""
-    assert run_all.load("sequential").main(["rock", "--sequences", "1", "--steps", "3", "--out", str(tmp_path)]) == 0
+    """experiments/sequential.py on the rock: one short tracking sequence (a row per touch and
+    method, finite errors for the track, the summary table; a second run of one method keeps
+    the others' rows), and two active-localization sequences per strategy."""
+    main = run_all.load("sequential").main
+    assert main(["rock", "--sequences", "1", "--steps", "3", "--out", str(tmp_path)]) == 0
     rows = sweep.read_rows(tmp_path / "steps.csv")
-    assert len(rows) == 9
+    assert len(rows) == 12 and {r["method"] for r in rows} == {"track", "batch", "relocalize", "pf"}
     track = [r for r in rows if r["method"] == "track"]
     assert all(np.isfinite(float(r["rot_deg"])) for r in track)
     assert "| track |" in (tmp_path / "summary.md").read_text()
+    assert main(["rock", "--sequences", "1", "--steps", "3", "--methods", "pf", "--out", str(tmp_path)]) == 0
+    again = sweep.read_rows(tmp_path / "steps.csv")
+    timeless = lambda table: sorted(str({k: v for k, v in r.items() if k != "ms"}) for r in table)
+    assert timeless(again) == timeless(rows)  # the same sequences: the pf rows come back
+    assert main(["rock", "--part", "active", "--sequences", "2", "--out", str(tmp_path)]) == 0
+    active = sweep.read_rows(tmp_path / "active.csv")
+    assert len(active) == 4 and all(2 <= float(r["touches_single"]) <= 16 for r in active)
+    assert "| rock | suggested | 2 |" in (tmp_path / "active.md").read_text()
+
+
+def test_memory_particle_filter_beats_dead_reckoning_on_a_held_object():
+    """A held rock, 15 touches of 2 noisy contacts after known hand motions with a slip of 1°
+    and 1 % of the diameter per touch: the particle filter (memory of 4 contacts) stays far
+    closer to the truth than the hand motions alone, whose error is the slip's random walk."""
+    from contactpose import baselines
+    from contactpose.geometry import metrics
+    from contactpose.model.object_model import ObjectModel
+    from contactpose.sim import grasps as simulate
+    from contactpose.sim import objects
+    from tests.solvers.test_track import _motion
+
+    model = ObjectModel.from_mesh(objects.load("rock"))
+    d = model.diameter
+    surface = baselines.sample_surface(model, neighbour_radius=None)
+    noise = dict(position_noise=0.0025 * d, normal_noise_deg=1.0)
+    filtered, reckoned = [], []
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        g = simulate.grasp(model, rng, n=4, **noise)
+        pf = baselines.MemoryParticleFilter(model, surface, g.pose[None], g.contacts, rng, particles=500, **noise)
+        X, dead = g.pose, g.pose
+        for _ in range(15):
+            delta = _motion(rng, 10.0, 0.05 * d)
+            X, dead = delta @ X @ _motion(rng, 1.0, 0.01 * d), delta @ dead
+            touch = simulate.grasp(model, rng, n=2, pose=X, **noise).contacts
+            filtered.append(metrics.rotation_error_deg(pf.add(touch, (delta, 1.0, 0.01 * d)), X))
+            reckoned.append(metrics.rotation_error_deg(dead, X))
+    assert np.median(filtered) < 0.5 * np.median(reckoned)
+    assert np.median(filtered) < 3.0

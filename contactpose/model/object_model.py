@@ -435,6 +435,15 @@ class ObjectModel:
         return p.mean(axis=0), p.T @ p / len(p)
 
     @cached_property
+    def centroid_tree(self):
+        """(scipy cKDTree over the valid facets' centroids, those facets (F,) int, their largest
+        radius): a nearest-facet search that can bound what it has not looked at."""
+        from scipy.spatial import cKDTree
+
+        valid = np.flatnonzero(self.planes.valid)
+        return cKDTree(self.centroids[valid]), valid, float(self.facet_radii[valid].max())
+
+    @cached_property
     def surface_tree(self):
         """scipy cKDTree over :attr:`surface_points`."""
         from scipy.spatial import cKDTree

@@ -41,9 +41,13 @@ def _finger_pairs(n):
     return pairs, i, j
 
 
-def pair_conditions(contacts):
-    """Δ̃_ij = |x̃_j - x̃_i| and α̃_ij = arccos(ñ_i·ñ_j) for all i < j (§3, fig. 6)."""
+def pair_conditions(contacts, since=0):
+    """Δ̃_ij = |x̃_j - x̃_i| and α̃_ij = arccos(ñ_i·ñ_j) for all i < j (§3, fig. 6) with
+    j >= ``since`` (0: every pair; k: only the pairs of contacts k, k+1, ... with the others)."""
     pairs, i, j = _finger_pairs(contacts.n)
+    if since:
+        keep = j >= since
+        pairs, i, j = [p for p, k in zip(pairs, keep) if k], i[keep], j[keep]
     nf, d = contacts.finger_normals, contacts.points[j] - contacts.points[i]
     distance = np.sqrt(np.einsum("ij,ij->i", d, d))
     cos = np.einsum("ij,ij->i", nf[i], nf[j])

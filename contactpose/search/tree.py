@@ -9,16 +9,35 @@ Two joins give the same set:
   pass, starting from the most selective finger pair; each node expands from the placed
   finger with the fewest candidates, membership by binary search in sorted adjacency rows.
 * :func:`join_tuples_paper`: the paper's tree, node by node in finger order.
+
+:func:`extend_tuples` grows a tree of the first k fingers by more fingers, from the pairs
+of the new fingers alone: the same set as :func:`join_tuples` over all of them.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from itertools import accumulate
 
 import numba
 import numpy as np
 
 from contactpose.progress import progress_bar
+
+
+@dataclass(frozen=True)
+class SearchTree:
+    """A complete tree T, kept so that more contacts can extend it (:func:`extend_tuples`).
+
+    contacts : the Contacts it was grown for (world frame); tolerance : the Tolerance of its
+    pair sets; units : "patches" or "facets", what ``tuples`` index; tuples : (H, n) int64,
+    every admissible tuple, rows in lexicographic order (:func:`sorted_rows`).
+    """
+
+    contacts: object
+    tolerance: object
+    units: str
+    tuples: np.ndarray
 
 
 def tilt_chord(angle):
@@ -82,25 +101,13 @@ def join_tuples(S, n, triple=None, *, deadline=None, progress=None):
     order, _ = placement_order(S, n)
     m = S[pairs[0]].m
     first, second, cut = getattr(S, "flat", None) or _flat_pairs(S, pairs)
-    if triple is None:
-        normals, measured, delta = np.zeros((1, 3)), np.zeros((n, 3)), np.full(1, np.inf)
-    else:
-        normals, measured, delta = triple.facet_normals, triple.measured, triple.delta
-    normals = np.ascontiguousarray(normals, dtype=np.float64)
-    measured = np.ascontiguousarray(measured, dtype=np.float64)
+    normals, measured, delta = _triple_arrays(triple, n)
     e0 = pair_of[order[0], order[1]]
     if cut[e0 + 1] - cut[e0] <= START_CHUNK:  # one chunk: the whole tree in one compiled call
         return _join(first, second, cut, m, order, pair_of, normals, measured, delta)
     start = np.stack(_directed(first, second, cut, e0, order[0] < order[1]), axis=1).astype(np.int64).reshape(-1, 2)
     rows = [_level_adjacency(first, second, cut, m, order, pair_of, level) for level in range(2, n)]
-    parts = []
-    with progress_bar(total=len(start), desc="tree", unit="start", show=progress) as bar:
-        for lo in range(0, len(start), START_CHUNK):
-            if any(len(p) for p in parts) and deadline is not None and deadline.passed:
-                break
-            parts.append(_grow_all(start[lo:lo + START_CHUNK], n, rows, order, normals, measured, delta))
-            bar.update(min(START_CHUNK, len(start) - lo))
-    nodes = np.concatenate(parts) if parts else np.zeros((0, n), dtype=np.int64)
+    nodes = _grow_chunks(start, n, rows, order, (normals, measured, delta), deadline, progress)
     out = np.empty((len(nodes), n), dtype=np.int64)
     out[:, order] = nodes
     return out
@@ -114,15 +121,62 @@ ESTIMATE_SAMPLE = 256
 
 
 def _grow_all(start, n, rows, order, normals, measured, delta):
-    """Every complete tuple under the start nodes (K, 2): (H, n) int64 in placement order."""
+    """Every complete tuple under the start nodes (K, k), k = n - len(rows) fingers placed:
+    (H, n) int64 in placement order."""
+    k = start.shape[1]
     nodes = np.zeros((len(start), n), dtype=np.int64)
-    nodes[:, :2] = start
+    nodes[:, :k] = start
     count = len(nodes)
-    for level, (indptr, targets) in enumerate(rows, start=2):
+    for level, (indptr, targets) in enumerate(rows, start=k):
         if not count:
             break
         nodes, count = _grow(nodes, count, level, indptr, targets, order, normals, measured, delta)
     return nodes[:count]
+
+
+def extend_tuples(tuples, S, n, triple=None, *, deadline=None, progress=None):
+    """The tree of n fingers from the tree of its first k: every tuple (H, k) of ``tuples``
+    grows by fingers k, ..., n-1 in turn, each kept where every placed finger admits it and
+    every new triple passes, as in :func:`join_tuples`, whose set this is (a tuple admissible
+    for all n fingers is admissible for the first k). S : dict (i, j) -> PairSet holding at
+    least the pairs i < j with j >= k, the only ones queried. triple : TripleTest over all n
+    fingers' measured normals. deadline, progress : as in :func:`join_tuples`, START_CHUNK
+    tuples at a time. Returns (H', n) int64 in finger order, in the order of ``tuples``, each
+    node's children in ascending facet order."""
+    tuples = np.asarray(tuples, dtype=np.int64)
+    k = tuples.shape[1]
+    if k >= n:
+        raise ValueError(f"a tree of {k} fingers cannot grow to {n}")
+    pairs = sorted(p for p in S if p[1] >= k)
+    pair_of = np.full((n, n), -1, dtype=np.int64)
+    for e, (i, j) in enumerate(pairs):
+        pair_of[i, j] = pair_of[j, i] = e
+    first, second, cut = _flat_pairs(S, pairs)
+    m, order = S[pairs[0]].m, np.arange(n, dtype=np.int64)
+    normals, measured, delta = _triple_arrays(triple, n)
+    rows = [_level_adjacency(first, second, cut, m, order, pair_of, level) for level in range(k, n)]
+    return _grow_chunks(tuples, n, rows, order, (normals, measured, delta), deadline, progress)
+
+
+def _grow_chunks(start, n, rows, order, triple, deadline, progress):
+    """:func:`_grow_all` over the start nodes START_CHUNK at a time, until the deadline passes
+    (once some tuple is complete). -> (H, n) int64 in placement order"""
+    parts = []
+    with progress_bar(total=len(start), desc="tree", unit="node", show=progress) as bar:
+        for lo in range(0, len(start), START_CHUNK):
+            if any(len(p) for p in parts) and deadline is not None and deadline.passed:
+                break
+            parts.append(_grow_all(start[lo:lo + START_CHUNK], n, rows, order, *triple))
+            bar.update(min(START_CHUNK, len(start) - lo))
+    return np.concatenate(parts) if parts else np.zeros((0, n), dtype=np.int64)
+
+
+def _triple_arrays(triple, n):
+    """(unit normals, measured normals, δ) of a TripleTest, contiguous; a pass-all stand-in for None."""
+    if triple is None:
+        return np.zeros((1, 3)), np.zeros((n, 3)), np.full(1, np.inf)
+    return (np.ascontiguousarray(triple.facet_normals, dtype=np.float64),
+            np.ascontiguousarray(triple.measured, dtype=np.float64), triple.delta)
 
 
 def _level_adjacency(first, second, cut, m, order, pair_of, level):

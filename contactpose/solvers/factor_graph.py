@@ -664,15 +664,40 @@ def _contact_chi2(model, contacts, facets, poses, tolerance, point_to_facet):
 
 def nearest_fit_facets(model, contacts, pose, tolerance):
     """Each contact's best facet under a pose: least whitened point-to-triangle distance²
-    plus normal residual². pose : (4, 4) -> (n,) int (valid facets only)"""
-    valid = np.flatnonzero(model.planes.valid)
+    plus normal residual². pose : (4, 4) -> (n,) int (valid facets only)
+
+    The NEAREST_CANDIDATES facets of nearest centroid are scored first; a facet not among them
+    lies at least (its centroid's distance - the largest facet radius) from the contact, so
+    when that exceeds what the best candidate costs in distance alone, none can beat it, and
+    otherwise the contact is scored against every facet: the answer is exact either way."""
+    tree, valid, radius = model.centroid_tree
     R, t = pose[:3, :3], pose[:3, 3]
     p = (contacts.points - t) @ R  # object frame, (n, 3)
-    f, n = len(valid), contacts.n
-    dist = point_triangle_distance(np.repeat(p, f, axis=0), np.tile(model.triangles[valid], (n, 1, 1)))
-    r_n = model.planes.normals[valid] @ R.T + contacts.finger_normals[:, None]  # (n, F, 3)
-    cost = dist.reshape(n, f) ** 2 / tolerance.position_noise**2 + np.sum(r_n**2, axis=2) / tolerance.normal_noise**2
-    return valid[np.argmin(cost, axis=1)]
+    if len(valid) <= 8 * NEAREST_CANDIDATES:  # a coarse mesh: score every facet
+        every = np.broadcast_to(valid, (contacts.n, len(valid)))
+        return valid[np.argmin(_fit_cost(model, p, R, contacts.finger_normals, every, tolerance), axis=1)]
+    dist, near = tree.query(p, NEAREST_CANDIDATES)
+    cost = _fit_cost(model, p, R, contacts.finger_normals, valid[near], tolerance)
+    best = valid[near[np.arange(contacts.n), np.argmin(cost, axis=1)]]
+    unsure = np.flatnonzero(dist[:, -1] - radius < np.sqrt(cost.min(axis=1)) * tolerance.position_noise)
+    if len(unsure):
+        every = np.broadcast_to(valid, (len(unsure), len(valid)))
+        best[unsure] = valid[np.argmin(_fit_cost(model, p[unsure], R, contacts.finger_normals[unsure], every,
+                                                 tolerance), axis=1)]
+    return best
+
+
+#: nearest_fit_facets scores this many facets of nearest centroid before it looks further.
+NEAREST_CANDIDATES = 128
+
+
+def _fit_cost(model, p, R, finger_normals, facets, tolerance):
+    """Whitened cost of contacts (object-frame points p (n, 3), finger normals (n, 3)) on facets
+    (n, K) under rotation R: distance²/σ_x² + |R ν_f + ñ|²/σ_n². -> (n, K)"""
+    n, K = facets.shape
+    dist = point_triangle_distance(np.repeat(p, K, axis=0), model.triangles[facets.ravel()]).reshape(n, K)
+    r_n = model.planes.normals[facets] @ R.T + finger_normals[:, None]
+    return dist**2 / tolerance.position_noise**2 + np.sum(r_n**2, axis=2) / tolerance.normal_noise**2
 
 
 def _empty(n, robust, prior):

@@ -15,6 +15,8 @@ both found again at every evaluation (scipy.optimize.least_squares, Levenberg–
 
 from __future__ import annotations
 
+from functools import partial
+
 import gtsam
 import numpy as np
 from scipy.optimize import least_squares
@@ -179,3 +181,25 @@ def needs_surface(model, contacts, R, t, facets, tolerance):
     own = (d / (widen * tolerance.position_noise)) ** 2 + np.sum((nu[used] - model.planes.normals[f]) ** 2,
                                                                    axis=1) / tolerance.normal_noise**2
     return bool(np.sum(own) - np.sum(cost[used]) > GATE_TOL * (1.0 + np.sum(own)))
+
+
+def surface_factor(model, contacts, facets, tolerance, key):
+    """χ²_S of some contacts as a gtsam.CustomFactor on the Pose3 ``key``: the whitened
+    residuals and Jacobian of :class:`_Problem` at the pose (rotation first, as Pose3's
+    tangent), each contact landing afresh at every evaluation, walking on from where it landed
+    the last time (first from ``facets`` (n,) int, -1: left out)."""
+    start = np.asarray(facets, dtype=np.int64).copy()
+    m = 6 * int(np.sum(start >= 0))
+    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(m), [key],
+                              partial(_surface_error, model, contacts, start, tolerance, key))
+
+
+def _surface_error(model, contacts, start, tolerance, key, this, values, H):
+    T = values.atPose3(key).matrix()
+    problem = _Problem(model, contacts, T[:3, :3], T[:3, 3], start.copy(), tolerance, 1.0)
+    zero = np.zeros(6)
+    e = problem.residuals(zero)
+    if H is not None:
+        H[0] = problem.jacobian(zero)
+    start[:] = np.where(start >= 0, problem._at[3].facet, -1)
+    return e

@@ -31,6 +31,7 @@ from contactpose.contacts import Contacts, Tolerance
 from contactpose.errors import ContactPoseError, check_count
 from contactpose.geometry.metrics import rotation_error_deg, translation_error
 from contactpose.solvers import factor_graph as fg
+from contactpose.solvers.surface import surface_factor
 from contactpose.types import PosePrior, check_rigid
 
 #: iSAM2 relinearises every variable whose update exceeds this (tangent norm) at every update.
@@ -39,6 +40,10 @@ RELINEARIZE_THRESHOLD = 1e-8
 #: (χ²₆ at 1 - 1e-6: a pose that much less likely than the best), and the distance within which
 #: two tracks are one pose (rotation in degrees, translation as a fraction of the diameter).
 MAX_TRACKS = 20
+CONTACT_MODELS = ("facets", "surface")
+#: Associated touches: after the update, each contact takes its best-fitting facet again under
+#: the updated pose, and the touch's factor is swapped while that changes, at most this often.
+REASSOCIATE = 5
 PRUNE_CHI2 = 38.26
 MERGE_DEG = 2.0
 MERGE_FRAC = 0.02
@@ -66,10 +71,17 @@ class PoseTrack:
     facets; pose : (4, 4) T_world_object to start from (the hypothesis's pose); tolerance :
     Tolerance (σ_x, σ_n); robust : "huber" | "cauchy" | "none"; prior : PosePrior on the first
     pose, or None (then the first touch must determine the pose); point_to_facet : the lateral
-    residual of a contact outside its triangle (factor_graph's contact factor).
+    residual of a contact outside its triangle (factor_graph's contact factor); contact_model :
+    "facets" (factor_graph's contact factor on each contact's facet plane) or "surface" (the
+    contact on the surface: on a face, an edge or a vertex, its normal in that feature's normal
+    cone, solvers.surface.surface_factor; no robust kernel).
     """
 
-    def __init__(self, model, contacts, facets, pose, tolerance, *, robust="huber", prior=None, point_to_facet=True):
+    def __init__(self, model, contacts, facets, pose, tolerance, *, robust="huber", prior=None, point_to_facet=True,
+                 contact_model="facets"):
+        if contact_model not in CONTACT_MODELS:
+            raise ContactPoseError(f"contact_model must be one of {CONTACT_MODELS}, got {contact_model!r}")
+        self.contact_model = contact_model
         if not isinstance(tolerance, Tolerance):
             raise ContactPoseError(f"tolerance must be a contactpose.Tolerance, got {type(tolerance).__name__}")
         if prior is not None and not isinstance(prior, PosePrior):
@@ -81,6 +93,8 @@ class PoseTrack:
         self.spread = gtsam.NonlinearFactorGraph()  # the same without point-to-facet rows (covariance)
         self.spread_params = fg.kernel_params(tolerance, robust, point_to_facet=False)
         self.initial = gtsam.Values()
+        self.touches = []  # (pose variable k, Contacts in the world, facets (n,)) of every touch
+        self._slots = []  # per touch: its contact factor's index in iSAM2, in graph and in spread
         self.score = 0.0  # Σ over touches of the touch's contact χ² just after its update
         params = gtsam.ISAM2Params()
         params.setRelinearizeThreshold(RELINEARIZE_THRESHOLD)
@@ -98,7 +112,8 @@ class PoseTrack:
     def add(self, contacts, facets=None, hand_motion=None):
         """One more touch: its contacts (world frame) and facets (n,) int, or None for each
         contact's best-fitting facet under the predicted pose (factor_graph.nearest_fit_facets;
-        the prediction is ΔT times the last smoothed pose: no slip); hand_motion : None (the
+        the prediction is ΔT times the last smoothed pose: no slip), taken again under the
+        updated pose until it holds (at most REASSOCIATE times); hand_motion : None (the
         object has not moved: the contacts join the last pose's factor graph, no new variable)
         or (ΔT (4, 4), σ_rot in degrees, σ_trans), the hand's motion since the last touch and
         the slip (a new pose variable). Returns the smoothed current pose (4, 4)."""
@@ -111,14 +126,55 @@ class PoseTrack:
             k = len(self.hand)
             factors.add(gtsam.BetweenFactorPose3(k - 1, k, gtsam.Pose3(), noise))
             values.insert(k, self._estimate.atPose3(k - 1))  # Y_k predicted: no slip
-        if facets is None:
+        associated = facets is None
+        if associated:
             facets = self.associate(contacts, hand)
-        self._update(factors, values, contacts, facets, hand)
+        self._update(factors, values, contacts, facets, hand, score=not associated)
+        if associated:
+            self._reassociate(contacts)
+            self.score += self._last_chi2()
         return self.pose
 
-    def _update(self, factors, values, contacts, facets, hand=None):
+    def _reassociate(self, contacts):
+        """The last touch's contacts take their best-fitting facets under the updated pose, and
+        its factor is swapped, until they hold (at most REASSOCIATE times)."""
+        for _ in range(REASSOCIATE):
+            again = self.associate(contacts)
+            if np.array_equal(again, self.touches[-1][2]):
+                break
+            self._swap(again)
+
+    def _factors(self, local, facets, k):
+        """The contact factor of a touch (contacts ``local`` in the hand frame) on pose k, and its
+        twin for the spread graph (no point-to-facet rows)."""
+        if self.contact_model == "surface":
+            return (surface_factor(self.model, local, facets, self.tolerance, k),
+                    surface_factor(self.model, local, facets, self.tolerance, k))
+        data = fg.pack_contacts(self.model, local, facets)
+        return fg.contact_factor(data, self.params, key=k), fg.contact_factor(data.copy(), self.spread_params, key=k)
+
+    def _swap(self, facets):
+        """The last touch's contact factor replaced by one on ``facets``: one iSAM2 update."""
+        k, contacts, _ = self.touches[-1]
+        factor, twin = self._factors(contacts.transformed(np.linalg.inv(self.hand[k])), facets, k)
+        slot, at_graph, at_spread = self._slots[-1]
+        self.graph.replace(at_graph, factor)
+        self.spread.replace(at_spread, twin)
+        new = gtsam.NonlinearFactorGraph()
+        new.add(factor)
+        result = self.isam.update(new, gtsam.Values(), [slot])
+        self._slots[-1] = (result.getNewFactorsIndices()[0], at_graph, at_spread)
+        self.touches[-1] = (k, contacts, facets)
+        self._estimate = self.isam.calculateEstimate()
+
+    def _last_chi2(self):
+        """χ² (2 · error) of the last touch's contact factor at the estimate."""
+        return 2.0 * self.graph.at(self._slots[-1][1]).error(self._estimate)
+
+    def _update(self, factors, values, contacts, facets, hand=None, score=True):
         """The contact factor of a touch on the last pose variable (a new one, at hand pose
-        ``hand``, when given), with ``factors`` and new ``values``: one iSAM2 update."""
+        ``hand``, when given), with ``factors`` and new ``values``: one iSAM2 update; ``score``
+        adds the touch's χ² to :attr:`score`."""
         _check_contacts(contacts)
         facets = np.asarray(facets)
         if facets.shape != (contacts.n,) or facets.min() < -1 or facets.max() >= self.model.num_facets:
@@ -127,22 +183,25 @@ class PoseTrack:
         if hand is not None:
             self.hand.append(hand)
         k = len(self.hand) - 1
-        local = contacts.transformed(np.linalg.inv(self.hand[k]))
-        data = fg.pack_contacts(self.model, local, facets)
+        self.touches.append((k, contacts, facets))
+        factor, twin = self._factors(contacts.transformed(np.linalg.inv(self.hand[k])), facets, k)
         for i in range(factors.size()):
             self.spread.add(factors.at(i))
-        self.spread.add(fg.contact_factor(data.copy(), self.spread_params, key=k))
-        factors.add(fg.contact_factor(data, self.params, key=k))
-        for i in range(factors.size()):
             self.graph.add(factors.at(i))
+        self.spread.add(twin)
+        factors.add(factor)
+        self.graph.add(factor)
         self.initial.insert(values)
         try:
-            self.isam.update(factors, values)
+            result = self.isam.update(factors, values)
         except RuntimeError as err:  # indeterminant system: the touches so far leave directions free
             raise ContactPoseError(f"pose {k}: the contacts so far leave pose directions free; give a prior "
                                    f"or more contacts ({type(err).__name__})") from None
+        self._slots.append((result.getNewFactorsIndices()[factors.size() - 1], self.graph.size() - 1,
+                            self.spread.size() - 1))
         self._estimate = self.isam.calculateEstimate()
-        self.score += 2.0 * factors.at(factors.size() - 1).error(self._estimate)
+        if score:
+            self.score += self._last_chi2()
 
     def associate(self, contacts, hand=None):
         """Each contact's best-fitting facet under the predicted pose: the hand pose (``hand``,
@@ -176,6 +235,14 @@ class PoseTrack:
             return gtsam.Marginals(self.spread, self._estimate).marginalCovariance(k)
         except RuntimeError:
             return self.isam.marginalCovariance(k)
+
+    def seen_now(self):
+        """Every touch's contacts as the object at its current pose would carry them (each moved
+        by X_K X_k⁻¹ from its own smoothed pose X_k), and their facets: the residuals of all
+        touches at one pose. -> (Contacts, facets (N,) int)"""
+        poses = self.poses
+        moved = [c.transformed(poses[-1] @ np.linalg.inv(poses[k])) for k, c, _ in self.touches]
+        return moved[0].joined(*moved[1:]), np.concatenate([f for _, _, f in self.touches])
 
     def relinearize(self, max_updates=100, tol=1e-12):
         """iSAM2 updates without new factors until no pose moves by more than ``tol`` (tangent
@@ -218,7 +285,7 @@ class TrackSet:
     """
 
     def __init__(self, model, contacts, starts, tolerance, *, max_tracks=MAX_TRACKS, prune_chi2=PRUNE_CHI2,
-                 merge_deg=MERGE_DEG, merge_frac=MERGE_FRAC, robust="huber"):
+                 merge_deg=MERGE_DEG, merge_frac=MERGE_FRAC, robust="huber", contact_model="facets"):
         if not starts:
             raise ContactPoseError("a TrackSet needs at least one start (facets, pose)")
         self.max_tracks, self.prune_chi2 = check_count(max_tracks, "max_tracks", minimum=1), float(prune_chi2)
@@ -226,7 +293,8 @@ class TrackSet:
         self.tracks = []
         for facets, pose in starts[:self.max_tracks]:
             try:
-                self.tracks.append(PoseTrack(model, contacts, facets, pose, tolerance, robust=robust))
+                self.tracks.append(PoseTrack(model, contacts, facets, pose, tolerance, robust=robust,
+                                             contact_model=contact_model))
             except ContactPoseError:  # a pose family: it cannot start a track without a prior
                 continue
         if not self.tracks:

@@ -187,6 +187,17 @@ def test_localize_reports_the_contact_model_fit_of_an_edge_grasp():
     assert r.hypotheses.arrays.chi2[0] < 1e-12 < 1.0 < plain.hypotheses.arrays.chi2[0]
 
 
+def _noisy_edge_grasp(model, rng, tol):
+    """A random rotation, an edge grasp under it with half-σ position noise and slightly tilted
+    normals. -> (pose (4, 4), Contacts, fingertip.approach's answer)"""
+    pose = np.eye(4)
+    pose[:3, :3] = Rotation.from_rotvec(rng.normal(size=3)).as_matrix()
+    contacts, got = _edge_grasp(model, rng, 0.1 * model.diameter, pose)
+    noisy = Contacts(contacts.points + rng.normal(scale=0.5 * tol.position_noise, size=(4, 3)),
+                     finger_normals=_unit(contacts.finger_normals + rng.normal(scale=0.02, size=(4, 3))))
+    return pose, noisy, got
+
+
 @pytest.mark.parametrize("name", ["rock1k", "box"])
 def test_surface_jacobian_matches_finite_differences(name):
     """The Jacobian of χ²_S's residuals, features held, against central differences at
@@ -196,11 +207,7 @@ def test_surface_jacobian_matches_finite_differences(name):
     tol = Tolerance.from_noise(0.002 * model.diameter, 2.0)
     checked = set()
     for trial in range(40):
-        pose = np.eye(4)
-        pose[:3, :3] = Rotation.from_rotvec(rng.normal(size=3)).as_matrix()
-        contacts, got = _edge_grasp(model, rng, 0.1 * model.diameter, pose)
-        noisy = Contacts(contacts.points + rng.normal(scale=0.5 * tol.position_noise, size=(4, 3)),
-                         finger_normals=_unit(contacts.finger_normals + rng.normal(scale=0.02, size=(4, 3))))
+        pose, noisy, got = _noisy_edge_grasp(model, rng, tol)
         problem = _Problem(model, noisy, pose[:3, :3], pose[:3, 3], got.facets, tol, 1.0)
         xi = rng.normal(scale=1e-3, size=6) * np.r_[1, 1, 1, [model.diameter] * 3]
         R, t = moved(pose[None, :3, :3], pose[None, :3, 3], xi[None])
@@ -230,3 +237,47 @@ def test_has_regions_only_when_patches_grown_above_the_coplanar_tolerance_are_se
     assert ObjectModel.from_mesh(sphere, patch_tol_deg=25.0).has_regions      # 46 regions of 320 facets
     assert not ObjectModel.from_mesh(sphere, patch_tol_deg=0.5).has_regions   # coplanar patches only
     assert not ObjectModel.from_mesh(objects.load("carton")).has_regions     # patches of flat faces
+
+
+def test_surface_factor_jacobian_is_the_pose3_tangent_derivative():
+    """The GTSAM factor of χ²_S: its error is the residual of _Problem at the pose, and its
+    Jacobian matches central differences through Pose3.retract (rotation first), wherever no
+    contact changes feature within the step."""
+    import gtsam
+
+    from contactpose.solvers.surface import surface_factor
+
+    model = ObjectModel.from_mesh(objects.load("rock1k"))
+    rng = np.random.default_rng(11)
+    tol = Tolerance.from_noise(0.002 * model.diameter, 2.0)
+    compared = 0
+    for trial in range(30):
+        pose, noisy, got = _noisy_edge_grasp(model, rng, tol)
+        factor = surface_factor(model, noisy, got.facets, tol, 0)
+        values = gtsam.Values()
+        values.insert(0, gtsam.Pose3(pose))
+        e = factor.unwhitenedError(values)
+        problem = _Problem(model, noisy, pose[:3, :3], pose[:3, 3], got.facets, tol, 1.0)
+        assert np.allclose(e, problem.residuals(np.zeros(6)), rtol=0, atol=1e-12)
+        A, b = factor.linearize(values).jacobian()
+        h = 1e-7 * np.r_[1, 1, 1, [model.diameter] * 3]
+        numeric, same = np.empty_like(A), True
+        for c in range(6):
+            step = np.zeros(6)
+            step[c] = h[c]
+            errors = []
+            for sign in (1, -1):
+                moved_values = gtsam.Values()
+                moved_values.insert(0, gtsam.Pose3(pose).retract(sign * step))
+                probe = _Problem(model, noisy, *(lambda T: (T[:3, :3], T[:3, 3]))(moved_values.atPose3(0).matrix()),
+                                 got.facets, tol, 1.0)
+                probe.residuals(np.zeros(6))
+                same &= np.array_equal(probe._at[3].kind, problem._at[3].kind)
+                errors.append(surface_factor(model, noisy, got.facets, tol, 0).unwhitenedError(moved_values))
+            numeric[:, c] = (errors[0] - errors[1]) / (2 * h[c])
+        if not same:
+            continue
+        assert np.allclose(A, numeric, rtol=1e-5, atol=1e-5 * np.abs(A).max()), trial
+        assert np.allclose(b, -e, atol=1e-12)
+        compared += 1
+    assert compared >= 20

@@ -8,7 +8,10 @@ from scipy.spatial.transform import Rotation
 
 from contactpose.contacts import Contacts, Tolerance
 from contactpose.errors import ContactPoseError
+from contactpose.geometry.metrics import rotation_error_deg
+from contactpose.model.object_model import ObjectModel
 from contactpose.sim import grasps as simulate
+from contactpose.sim import objects
 from contactpose.solvers import factor_graph as fg
 from contactpose.solvers.track import PoseTrack, TrackSet
 from contactpose.types import PosePrior
@@ -193,3 +196,49 @@ def test_track_set_keeps_the_hypothesis_that_explains_the_touches(rock_model):
     assert np.linalg.norm(pose[:3, 3] - truth[-1][:3, 3]) < 0.02 * rock.diameter
     with pytest.raises(ContactPoseError, match="at least one start"):
         TrackSet(rock, contacts, [], _tolerance(rock))
+
+
+def test_associated_touches_are_a_fixed_point_and_isam2_still_equals_batch(rock_model):
+    """Touches given without facets, noisy, with slip: after each, its facets are the ones it
+    fits best under the updated pose (the swap loop ended there), and the smoother's converged
+    trajectory equals batch LM on the same graph, the swapped factors included."""
+    rock = rock_model
+    rng = np.random.default_rng(31)
+    truth, touches = _sequence(rock, rng, 12, noise=1.0, slip=1.0)
+    tol = _tolerance(rock)
+    contacts, facets, _ = touches[0]
+    track = PoseTrack(rock, contacts, facets, truth[0], tol, point_to_facet=False)
+    fixed = 0
+    for contacts, _, motion in touches[1:]:
+        track.add(contacts, hand_motion=motion)
+        fixed += np.array_equal(track.associate(contacts), track.touches[-1][2])
+    assert fixed >= 11
+    np.testing.assert_allclose(track.relinearize(), track.batch(), atol=1e-9)
+
+
+def test_surface_contact_model_follows_fingertip_contacts_on_edges(rock_model):
+    """Noise-free rounded-fingertip contacts, many on edges and vertices, exact hand motions and
+    no slip, started 1° and 0.5 % of the diameter off: with the surface contact model the
+    smoothed trajectory is the true one; the facet model is biased by the edge contacts."""
+    from tests.model.test_surface import _edge_grasp
+
+    model = ObjectModel.from_mesh(objects.load("rock1k"))
+    rng = np.random.default_rng(12)
+    d = model.diameter
+    X = np.eye(4)
+    first, got = _edge_grasp(model, rng, 0.05 * d, X)
+    start = X @ _motion(rng, 1.0, 0.005 * d)
+    tol = Tolerance.from_noise(0.0025 * d, 1.0)
+    tracks = {m: PoseTrack(model, first, got.facets, start, tol, contact_model=m, robust="none")
+              for m in ("surface", "facets")}
+    truth = [X]
+    for _ in range(8):
+        delta = _motion(rng, 10.0, 0.05 * d)
+        X = delta @ X
+        contacts, _ = _edge_grasp(model, rng, 0.05 * d, X)
+        truth.append(X)
+        for t in tracks.values():
+            t.add(contacts, hand_motion=(delta, 0.1, 0.001 * d))
+    surface, facets = (tracks[m].relinearize() for m in ("surface", "facets"))
+    np.testing.assert_allclose(surface, np.stack(truth), atol=1e-6 * d)
+    assert max(rotation_error_deg(T, X) for T, X in zip(facets, truth)) > 1e-3

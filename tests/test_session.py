@@ -1,0 +1,126 @@
+"""TouchSession: touches added one by one against localize of all contacts at once
+(static object), and against a TrackSet driven by hand (held object)."""
+
+import numpy as np
+import pytest
+
+from contactpose import ContactPoseError, Contacts, ObjectModel, TouchSession, localize
+from contactpose.sim import grasps as simulate
+from contactpose.solvers.track import TrackSet
+from tests.conftest import random_icosahedron
+from tests.solvers.test_track import _motion
+
+NOISE = 0.0025  # of the diameter
+
+
+def _noise(model):
+    return dict(position_noise=NOISE * model.diameter, normal_noise_deg=1.0)
+
+
+def _same(a, b):
+    """Whether two Results list the same hypotheses (facets, poses, χ², order) and status."""
+    x, y = a.hypotheses.arrays, b.hypotheses.arrays
+    return (a.status == b.status and a.num_hypotheses == b.num_hypotheses and len(a.classes) == len(b.classes)
+            and np.array_equal(x.facets, y.facets) and np.allclose(x.poses, y.poses, rtol=0, atol=1e-12)
+            and np.allclose(x.chi2, y.chi2, rtol=1e-12, atol=1e-12))
+
+
+def _static_sequences(model, rng, count, n=5):
+    """``count`` sequences of n noisy contacts on the model, added one per touch; after each
+    touch from the second on, the session's Result against localize of all contacts so far.
+    -> number of (sequence, touch) comparisons, mismatches"""
+    compared, bad = 0, []
+    for q in range(count):
+        g = simulate.grasp(model, rng, n=n, position_noise=NOISE * model.diameter, normal_noise_deg=1.0)
+        session = TouchSession(model, **_noise(model))
+        for k in range(n):
+            got = session.add(Contacts(g.contacts.points[k:k + 1], finger_normals=g.contacts.finger_normals[k:k + 1]))
+            if k == 0:
+                continue
+            want = localize(model, session.contacts, **_noise(model))
+            compared += 1
+            if not _same(got, want) or not np.array_equal(got.tree.tuples, want.tree.tuples):
+                bad.append((q, k))
+    return compared, bad
+
+
+def test_static_session_equals_localize_of_all_contacts(rock_model, carton_model):
+    """210 random sequences of 5 contacts, added one at a time, on 130 irregular 20-facet meshes
+    (facets), the carton (patches) and the rock (320 facets): after every touch the session
+    lists exactly what localize lists for all the contacts at once, from the same tree."""
+    assert carton_model.patch_table is not None  # the patch path is exercised
+    rng = np.random.default_rng(18)
+    compared, bad = 0, []
+    for seed in range(130):
+        c, b = _static_sequences(ObjectModel.from_mesh(random_icosahedron(seed)), rng, 1)
+        compared, bad = compared + c, bad + b
+    for model, count in ((carton_model, 50), (rock_model, 30)):
+        c, b = _static_sequences(model, rng, count)
+        compared, bad = compared + c, bad + b
+    assert compared == 210 * 4
+    assert bad == []
+
+
+def test_one_contact_is_every_unit(rock_model):
+    """One contact: no search yet, status underdetermined, every facet counted, and a tree
+    that the second contact grows into the full search's."""
+    session = TouchSession(rock_model)
+    g = simulate.grasp(rock_model, np.random.default_rng(3), n=2)
+    r = session.add(Contacts(g.contacts.points[:1], finger_normals=g.contacts.finger_normals[:1]))
+    assert r.status == "underdetermined" and len(r.hypotheses) == 0 and r.num_hypotheses == rock_model.num_facets
+    assert "one contact" in r.hint
+    r2 = session.add(Contacts(g.contacts.points[1:], finger_normals=g.contacts.finger_normals[1:]))
+    assert _same(r2, localize(rock_model, g.contacts))
+
+
+def test_tree_of_other_contacts_or_noise_is_refused(rock_model):
+    g = simulate.grasp(rock_model, np.random.default_rng(4), n=4)
+    first = localize(rock_model, Contacts(g.contacts.points[:3], finger_normals=g.contacts.finger_normals[:3]))
+    with pytest.raises(ContactPoseError, match="same noise"):
+        localize(rock_model, g.contacts, tree=first.tree, position_noise=0.01)
+    moved = g.contacts.transformed(_motion(np.random.default_rng(0), 5.0, 0.01))
+    with pytest.raises(ContactPoseError, match="not the first 3"):
+        localize(rock_model, moved, tree=first.tree)
+    with pytest.raises(ContactPoseError, match="SearchTree"):
+        localize(rock_model, g.contacts, tree="tree")
+
+
+def test_session_refuses_options_it_sets(rock_model):
+    with pytest.raises(ContactPoseError, match="tree"):
+        TouchSession(rock_model, tree=None)
+
+
+def test_held_session_is_the_track_set(rock_model):
+    """A held object: after a static first grasp, touches with hand motions give the poses of a
+    TrackSet driven by hand with the same touches, track for track."""
+    rng = np.random.default_rng(9)
+    d = rock_model.diameter
+    g = simulate.grasp(rock_model, rng, n=4, position_noise=NOISE * d, normal_noise_deg=1.0)
+    session = TouchSession(rock_model, **_noise(rock_model))
+    first = session.add(g.contacts)
+    tracks = TrackSet(rock_model, g.contacts, [(h.facets, h.pose) for h in first.hypotheses], session.tolerance)
+    X = g.pose
+    for _ in range(6):
+        delta = _motion(rng, 10.0, 0.05 * d)
+        X = delta @ X @ _motion(rng, 1.0, 0.01 * d)
+        touch = simulate.grasp(rock_model, rng, n=2, pose=X, position_noise=NOISE * d, normal_noise_deg=1.0).contacts
+        motion = (delta, 1.0, 0.01 * d)
+        r = session.add(touch, hand_motion=motion)
+        tracks.add(touch, hand_motion=motion)
+        assert len(r.hypotheses) == len(tracks.tracks)
+        for h, t in zip(r.hypotheses, tracks.tracks):
+            np.testing.assert_allclose(h.pose, t.pose, atol=1e-12)
+            assert h.cost == pytest.approx(t.score)
+    assert r.status in ("ok", "ambiguous") and r.best.facets.shape == (4 + 12,)
+    assert np.degrees(np.arccos(np.clip((np.trace(r.best.pose[:3, :3].T @ X[:3, :3]) - 1) / 2, -1, 1))) < 5.0
+    with pytest.raises(ContactPoseError, match="static"):
+        session.suggest_touch(rng=rng)
+
+
+def test_held_object_needs_a_determined_pose_first(carton_model):
+    """Two contacts on the carton leave the pose free: the hand may not move yet."""
+    g = simulate.grasp(carton_model, np.random.default_rng(2), n=2)
+    session = TouchSession(carton_model)
+    session.add(g.contacts)
+    with pytest.raises(ContactPoseError, match="leave the pose free"):
+        session.add(g.contacts.transformed(np.eye(4)), hand_motion=(np.eye(4), 1.0, 0.001))
