@@ -59,6 +59,14 @@ def hand_motion_noise(sigma_rot_deg, sigma_trans):
     return gtsam.noiseModel.Diagonal.Sigmas(s)
 
 
+def checked_motion(hand_motion):
+    """None, or (ΔT (4, 4), σ_rot in degrees, σ_trans) -> (ΔT checked rigid, the slip's noise model)."""
+    if hand_motion is None:
+        return None
+    delta, sigma_rot_deg, sigma_trans = hand_motion
+    return check_rigid(delta, "hand motion"), hand_motion_noise(sigma_rot_deg, sigma_trans)
+
+
 def _check_contacts(contacts):
     if not isinstance(contacts, Contacts):
         raise ContactPoseError(f"contacts must be a contactpose.Contacts, got {type(contacts).__name__}")
@@ -117,15 +125,18 @@ class PoseTrack:
         object has not moved: the contacts join the last pose's factor graph, no new variable)
         or (ΔT (4, 4), σ_rot in degrees, σ_trans), the hand's motion since the last touch and
         the slip (a new pose variable). Returns the smoothed current pose (4, 4)."""
-        factors, values, hand = gtsam.NonlinearFactorGraph(), gtsam.Values(), None
         _check_contacts(contacts)
-        if hand_motion is not None:
-            delta, sigma_rot_deg, sigma_trans = hand_motion
-            noise = hand_motion_noise(sigma_rot_deg, sigma_trans)
-            hand = check_rigid(delta, "hand motion") @ self.hand[-1]
+        return self._add(contacts, facets, checked_motion(hand_motion))
+
+    def _add(self, contacts, facets, motion):
+        """:meth:`add` with the hand motion checked: None or (ΔT (4, 4), slip noise model)."""
+        factors, values, hand = gtsam.NonlinearFactorGraph(), gtsam.Values(), None
+        if motion is not None:
+            delta, noise = motion
+            hand = delta @ self.hand[-1]
             k = len(self.hand)
             factors.add(gtsam.BetweenFactorPose3(k - 1, k, gtsam.Pose3(), noise))
-            values.insert(k, self._estimate.atPose3(k - 1))  # Y_k predicted: no slip
+            values.insert(k, self._last)  # Y_k predicted: no slip
         associated = facets is None
         if associated:
             facets = self.associate(contacts, hand)
@@ -165,11 +176,25 @@ class PoseTrack:
         result = self.isam.update(new, gtsam.Values(), [slot])
         self._slots[-1] = (result.getNewFactorsIndices()[0], at_graph, at_spread)
         self.touches[-1] = (k, contacts, facets)
-        self._estimate = self.isam.calculateEstimate()
+        self._refresh()
+
+    def _refresh(self):
+        """After an update: the last pose's estimate now, every pose's when asked (:attr:`_estimate`)."""
+        self._full = None
+        self._last = self.isam.calculateEstimatePose3(len(self.hand) - 1)
+
+    @property
+    def _estimate(self):
+        """gtsam.Values: the smoothed estimate of every pose variable."""
+        if self._full is None:
+            self._full = self.isam.calculateEstimate()
+        return self._full
 
     def _last_chi2(self):
-        """χ² (2 · error) of the last touch's contact factor at the estimate."""
-        return 2.0 * self.graph.at(self._slots[-1][1]).error(self._estimate)
+        """χ² (2 · error) of the last touch's contact factor (on the last pose alone) at the estimate."""
+        at = gtsam.Values()
+        at.insert(len(self.hand) - 1, self._last)
+        return 2.0 * self.graph.at(self._slots[-1][1]).error(at)
 
     def _update(self, factors, values, contacts, facets, hand=None, score=True):
         """The contact factor of a touch on the last pose variable (a new one, at hand pose
@@ -199,7 +224,7 @@ class PoseTrack:
                                    f"or more contacts ({type(err).__name__})") from None
         self._slots.append((result.getNewFactorsIndices()[factors.size() - 1], self.graph.size() - 1,
                             self.spread.size() - 1))
-        self._estimate = self.isam.calculateEstimate()
+        self._refresh()
         if score:
             self.score += self._last_chi2()
 
@@ -210,7 +235,7 @@ class PoseTrack:
         return fg.nearest_fit_facets(self.model, contacts, predicted, self.tolerance)
 
     def _y(self, k):
-        return self._estimate.atPose3(k).matrix()
+        return (self._last if k == len(self.hand) - 1 else self._estimate.atPose3(k)).matrix()
 
     @property
     def poses(self):
@@ -250,7 +275,7 @@ class PoseTrack:
         for _ in range(max_updates):
             before = self._estimate
             self.isam.update()
-            self._estimate = self.isam.calculateEstimate()
+            self._refresh()
             moved = max(np.linalg.norm(before.atPose3(k).localCoordinates(self._estimate.atPose3(k)))
                         for k in range(len(self.hand)))
             if moved <= tol:
@@ -303,8 +328,10 @@ class TrackSet:
 
     def add(self, contacts, hand_motion=None):
         """One more touch for every track (facets associated per track). -> the best pose (4, 4)"""
+        _check_contacts(contacts)
+        motion = checked_motion(hand_motion)
         for t in self.tracks:
-            t.add(contacts, hand_motion=hand_motion)
+            t._add(contacts, None, motion)
         self._prune()
         return self.best.pose
 
@@ -315,15 +342,13 @@ class TrackSet:
 
     def _prune(self):
         self.tracks.sort(key=lambda t: t.score)
+        poses = np.stack([t.pose for t in self.tracks])
+        same = ((rotation_error_deg(poses[:, None], poses[None]) <= self.merge[0])
+                & (translation_error(poses[:, None], poses[None]) <= self.merge[1]))
         kept = []
-        for t in self.tracks:
+        for i, t in enumerate(self.tracks):
             if t.score > self.tracks[0].score + self.prune_chi2 or len(kept) == self.max_tracks:
                 break
-            if not any(_same_pose(t.pose, k.pose, *self.merge) for k in kept):
-                kept.append(t)
-        self.tracks = kept
-
-
-def _same_pose(a, b, max_deg, max_trans):
-    """Whether two poses (4, 4) are within max_deg of rotation and max_trans of translation."""
-    return rotation_error_deg(a, b) <= max_deg and translation_error(a, b) <= max_trans
+            if not same[i, kept].any():  # merged into a better track with the same pose
+                kept.append(i)
+        self.tracks = [self.tracks[i] for i in kept]
