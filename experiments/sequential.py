@@ -207,16 +207,18 @@ def _holds_truth(model, result, X):
 
 
 def active_summary(rows, max_touches):
-    """Per object and strategy: touches to a single class and to the true one (median, p90)."""
-    lines = [f"| object | strategy | sequences | touches to one class, median / p90 | to the true class, median / p90 | "
+    """Per object and strategy: touches to a single class and to the true one (median, p90,
+    mean; a sequence that never got there counts max_touches + 1)."""
+    lines = [f"| object | strategy | sequences | touches to one class, median / p90 / mean | to the true class, median / p90 / mean | "
              f"not reached in {max_touches} | misses per sequence | ms per plan, median |",
              "|---|---|---:|---:|---:|---:|---:|---:|"]
     for name in dict.fromkeys(r["object"] for r in rows):
         for strategy in STRATEGIES:
             sel = [r for r in rows if r["object"] == name and r["strategy"] == strategy]
             one, true = (np.array([float(r[c]) for r in sel]) for c in ("touches_single", "touches_true"))
-            lines.append(f"| {name} | {strategy} | {len(sel)} | {np.median(one):g} / {np.percentile(one, 90):g} | "
-                         f"{np.median(true):g} / {np.percentile(true, 90):g} | {np.mean(true > max_touches):.1%} | "
+            lines.append(f"| {name} | {strategy} | {len(sel)} | {np.median(one):g} / {np.percentile(one, 90):g} / "
+                         f"{np.mean(one):.2f} | {np.median(true):g} / {np.percentile(true, 90):g} / {np.mean(true):.2f} | "
+                         f"{np.mean(true > max_touches):.1%} | "
                          f"{np.mean([float(r['misses']) for r in sel]):.2f} | "
                          f"{np.nanmedian([float(r['plan_ms']) for r in sel]):.0f} |")
     return "\n".join(lines)
