@@ -107,7 +107,7 @@ def join_tuples(S, n, triple=None, *, deadline=None, progress=None):
         return _join(first, second, cut, m, order, pair_of, normals, measured, delta)
     start = np.stack(_directed(first, second, cut, e0, order[0] < order[1]), axis=1).astype(np.int64).reshape(-1, 2)
     rows = [_level_adjacency(first, second, cut, m, order, pair_of, level) for level in range(2, n)]
-    nodes = _grow_chunks(start, n, rows, order, (normals, measured, delta), deadline, progress)
+    nodes = _grow_chunks(start, n, rows, order, (normals, measured, delta), deadline, progress, "start")
     out = np.empty((len(nodes), n), dtype=np.int64)
     out[:, order] = nodes
     return out
@@ -155,14 +155,14 @@ def extend_tuples(tuples, S, n, triple=None, *, deadline=None, progress=None):
     m, order = S[pairs[0]].m, np.arange(n, dtype=np.int64)
     normals, measured, delta = _triple_arrays(triple, n)
     rows = [_level_adjacency(first, second, cut, m, order, pair_of, level) for level in range(k, n)]
-    return _grow_chunks(tuples, n, rows, order, (normals, measured, delta), deadline, progress)
+    return _grow_chunks(tuples, n, rows, order, (normals, measured, delta), deadline, progress, "node")
 
 
-def _grow_chunks(start, n, rows, order, triple, deadline, progress):
+def _grow_chunks(start, n, rows, order, triple, deadline, progress, unit):
     """:func:`_grow_all` over the start nodes START_CHUNK at a time, until the deadline passes
-    (once some tuple is complete). -> (H, n) int64 in placement order"""
+    (once some tuple is complete); the bar counts ``unit``. -> (H, n) int64 in placement order"""
     parts = []
-    with progress_bar(total=len(start), desc="tree", unit="node", show=progress) as bar:
+    with progress_bar(total=len(start), desc="tree", unit=unit, show=progress) as bar:
         for lo in range(0, len(start), START_CHUNK):
             if any(len(p) for p in parts) and deadline is not None and deadline.passed:
                 break
