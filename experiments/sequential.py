@@ -66,7 +66,8 @@ from contactpose.solvers.track import TrackSet
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "results" / "sequential"
 SETTINGS = dict(steps=30, radius_frac=0.02, position_noise_frac=0.0025, normal_noise_deg=1.0, hand_rot_deg=10.0,
-                hand_trans_frac=0.1, slip_deg=1.0, slip_trans_frac=0.005, lost_deg=10.0, lost_frac=0.1, seed=18)
+                hand_trans_frac=0.1, slip_deg=1.0, slip_trans_frac=0.005, lost_deg=10.0, lost_frac=0.1, seed=18,
+                contact_model="auto")
 METHODS = ("track", "batch", "relocalize", "pf")
 STRATEGIES = ("suggested", "random")
 #: Particles of the particle-filter baseline.
@@ -107,7 +108,8 @@ def sequence(model, mesh, rng, s, seq, methods=METHODS, surface=None):
     if r.best is None:
         return []
     starts = [(h.facets, h.pose) for h in r.hypotheses]
-    tracks = TrackSet(model, first, starts, tol) if {"track", "batch"} & set(methods) else None
+    tracks = (TrackSet(model, first, starts, tol, contact_model=s["contact_model"])
+              if {"track", "batch"} & set(methods) else None)
     pf = None
     if "pf" in methods:
         pf = MemoryParticleFilter(model, surface, [p for _, p in starts], first, np.random.default_rng([s["seed"], seq]),
@@ -276,12 +278,14 @@ def main(argv=None):
     parser.add_argument("--steps", type=int, default=SETTINGS["steps"], help="touches after the first grasp")
     parser.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS), help="tracking methods to run")
     parser.add_argument("--max-touches", type=int, default=15, help="active: touches per sequence at most")
+    parser.add_argument("--contact-model", default=SETTINGS["contact_model"], choices=("auto", "facets", "smooth", "surface"),
+                        help="the tracks' contact model (PoseTrack)")
     parser.add_argument("--out", default=str(OUT))
     args = parser.parse_args(argv)
     warnings.simplefilter("ignore")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    s = dict(SETTINGS, steps=args.steps)
+    s = dict(SETTINGS, steps=args.steps, contact_model=args.contact_model)
     (run_active if args.part == "active" else run_tracking)(args.objects, args, s, out)
     return 0
 

@@ -435,6 +435,20 @@ class ObjectModel:
         return p.mean(axis=0), p.T @ p / len(p)
 
     @cached_property
+    def smooth_normals(self):
+        """(M (m, 3, 3), corner normal (m, 3)): the normal interpolated over each facet from its
+        vertices' normals (trimesh's, of the vertex-merged mesh) is m(p) = n_a + M (p - a) for
+        a point p (object frame; the barycentric coordinates of its projection on the plane),
+        to be normalised; a = the facet's first vertex."""
+        merged = merged_mesh(self.vertices, self.faces)
+        vn = np.asarray(merged.vertex_normals)[np.asarray(merged.faces)]  # (m, 3 corners, 3)
+        tri = self.triangles
+        E = np.stack([tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]], axis=2)  # (m, 3, 2)
+        G = np.linalg.pinv(E)  # (m, 2, 3): barycentric (λ_b, λ_c) of p - a, projected
+        dN = np.stack([vn[:, 1] - vn[:, 0], vn[:, 2] - vn[:, 0]], axis=2)  # (m, 3, 2)
+        return dN @ G, vn[:, 0]
+
+    @cached_property
     def centroid_tree(self):
         """(scipy cKDTree over the valid facets' centroids, those facets (F,) int, their largest
         radius): a nearest-facet search that can bound what it has not looked at."""

@@ -88,6 +88,7 @@ from scipy.spatial.transform import Rotation
 from contactpose.contacts import Contacts
 from contactpose.errors import ContactPoseError, check_count
 from contactpose.geometry.kernels import closest_point_triangle, point_triangle_distance
+from contactpose.geometry.metrics import skew
 from contactpose.model.patches import nearest_members
 from contactpose.solvers import residuals as res
 from contactpose.solvers.closed_form import wahba
@@ -325,6 +326,52 @@ def contact_factor(data, params, key=POSE_KEY):
     m = factor_dim(len(data), params[4] != 0.0)
     fn = partial(contact_error, data, params, np.empty(m), np.empty((m, 6)), key)
     return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(m), [key], fn)
+
+
+def smooth_contact_factor(model, contacts, facets, tolerance, key=POSE_KEY, point_to_facet=True):
+    """The batched contact factor with each contact's normal residual taken against the
+    normal interpolated over its facet from the vertex normals (ObjectModel.smooth_normals)
+    at the contact's place, r_n = R n(p) + ñ, n(p) = m(p)/|m(p)|, p = Rᵀ(x̃ - t), instead of the
+    facet's own normal: on a fine tessellation of a smooth surface the normal then changes
+    continuously from facet to facet. The offset and lateral rows are the contact factor's.
+    No robust kernel. A gtsam.CustomFactor on ``key``."""
+    facets = np.asarray(facets)
+    data = pack_contacts(model, contacts, facets)
+    params = kernel_params(tolerance, "none", point_to_facet)
+    safe = np.maximum(facets, 0)
+    M, corner = model.smooth_normals
+    smooth = (M[safe], model.triangles[safe, 0], corner[safe], facets >= 0)
+    fn = partial(_smooth_error, data, params, smooth, key)
+    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(factor_dim(len(data), point_to_facet)), [key], fn)
+
+
+def smooth_contact_residuals(T, data, params, smooth):
+    """The smooth factor's error (m,) and Jacobian (m, 6) at a pose T (4, 4): see
+    :func:`smooth_contact_factor`; smooth = (M (n, 3, 3), a (n, 3), n_a (n, 3), assigned (n,))."""
+    e, J = contact_residuals(T, data, params)
+    M, a, na, used = smooth
+    R, t = T[:3, :3], T[:3, 3]
+    p = (data[:, 13:16] - t) @ R
+    m = na + np.einsum("nij,nj->ni", M, p - a)
+    size = np.linalg.norm(m, axis=1)
+    nu = m / size[:, None]
+    k = len(data)
+    inv_sn = params[0]
+    e[:3 * k] = ((nu @ R.T + data[:, 16:19]) * inv_sn * used[:, None]).ravel()
+    # ∂(R n(p))/∂ω = R(-[n]× + Dn [p]×), ∂/∂v = -R Dn, Dn = (I - n nᵀ) M / |m|
+    Dn = (np.eye(3) - np.einsum("ni,nj->nij", nu, nu)) @ M / size[:, None, None]
+    Jn = np.zeros((k, 3, 6))
+    Jn[:, :, :3] = R @ (-skew(nu) + Dn @ skew(p))
+    Jn[:, :, 3:] = -R @ Dn
+    J[:3 * k] = (Jn * inv_sn * used[:, None, None]).reshape(3 * k, 6)
+    return e, J
+
+
+def _smooth_error(data, params, smooth, key, this, values, H):
+    e, J = smooth_contact_residuals(values.atPose3(key).matrix(), data, params, smooth)
+    if H is not None:
+        H[0] = J
+    return e
 
 
 def prior_factor(prior, key=POSE_KEY):

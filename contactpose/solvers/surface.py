@@ -23,6 +23,7 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from contactpose.geometry.kernels import point_triangle_distance
+from contactpose.geometry.metrics import skew
 from contactpose.model.surface import land
 
 #: Residual evaluations of one stage of a surface fit.
@@ -93,20 +94,13 @@ class _Problem:
         Jr = gtsam.Rot3.ExpmapDerivative(xi[:3])
         k = len(p)
         dp = np.zeros((k, 3, 6))  # p = Exp(ω)ᵀ p₀ − v, ν = Exp(ω)ᵀ ν₀
-        dp[:, :, :3] = _skew(p + xi[3:]) @ Jr
+        dp[:, :, :3] = skew(p + xi[3:]) @ Jr
         dp[:, :, 3:] = -np.eye(3)
-        dnu = _skew(nu) @ Jr
+        dnu = skew(nu) @ Jr
         Jp = _position_projector(got.pcode[u], got.pdir[u]) @ dp / self.sx
         Jn = np.zeros((k, 3, 6))
         Jn[:, :, :3] = _normal_projector(nu, got.cone[u], got.ncode[u], got.arc[u]) @ dnu / self.sn
         return np.concatenate([Jp.reshape(-1, 6), Jn.reshape(-1, 6)])
-
-
-def _skew(v):
-    """[v]× for each row of v (k, 3) -> (k, 3, 3)."""
-    S = np.zeros(v.shape[:-1] + (3, 3))
-    S[..., 0, 1], S[..., 0, 2], S[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
-    return S - np.swapaxes(S, -1, -2)
 
 
 def _position_projector(code, direction):

@@ -18,6 +18,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from contactpose.geometry.metrics import skew
+
 __all__ = ["local_quadric", "pose_information", "tangent_basis"]
 
 
@@ -57,13 +59,13 @@ def pose_information(points, normals, position_noise, normal_noise, hessians=Non
     for i, (x, nu) in enumerate(zip(points, normals)):
         T = tangent_basis(nu) if tangents is None else tangents[i]
         J_n = np.zeros((2, 6 + slides))
-        J_n[:, :3] = -T.T @ _skew(nu)
+        J_n[:, :3] = -T.T @ skew(nu)
         if hessians is None:
             j_o = np.concatenate([np.cross(x, nu), nu])
             info[:6, :6] += np.outer(j_o, j_o) / position_noise**2
         else:
             J_p = np.zeros((3, 6 + slides))
-            J_p[:, :3], J_p[:, 3:6], J_p[:, 6 + 2 * i:8 + 2 * i] = -_skew(x), np.eye(3), T
+            J_p[:, :3], J_p[:, 3:6], J_p[:, 6 + 2 * i:8 + 2 * i] = -skew(x), np.eye(3), T
             J_n[:, 6 + 2 * i:8 + 2 * i] = -hessians[i]
             info += J_p.T @ J_p / position_noise**2
         info += J_n.T @ J_n / normal_noise**2
@@ -73,5 +75,3 @@ def pose_information(points, normals, position_noise, normal_noise, hessians=Non
     return A - B @ np.linalg.solve(C, B.T)
 
 
-def _skew(a):
-    return np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])
