@@ -88,7 +88,6 @@ from scipy.spatial.transform import Rotation
 from contactpose.contacts import Contacts
 from contactpose.errors import ContactPoseError, check_count
 from contactpose.geometry.kernels import closest_point_triangle, point_triangle_distance
-from contactpose.geometry.metrics import skew
 from contactpose.model.patches import nearest_members
 from contactpose.solvers import residuals as res
 from contactpose.solvers.closed_form import wahba
@@ -340,7 +339,8 @@ def smooth_contact_factor(model, contacts, facets, tolerance, key=POSE_KEY, poin
     params = kernel_params(tolerance, "none", point_to_facet)
     safe = np.maximum(facets, 0)
     M, corner = model.smooth_normals
-    smooth = (M[safe], model.triangles[safe, 0], corner[safe], facets >= 0)
+    smooth = (np.ascontiguousarray(M[safe]), np.ascontiguousarray(model.triangles[safe, 0]),
+              np.ascontiguousarray(corner[safe]), facets >= 0)
     fn = partial(_smooth_error, data, params, smooth, key)
     return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(factor_dim(len(data), point_to_facet)), [key], fn)
 
@@ -349,22 +349,36 @@ def smooth_contact_residuals(T, data, params, smooth):
     """The smooth factor's error (m,) and Jacobian (m, 6) at a pose T (4, 4): see
     :func:`smooth_contact_factor`; smooth = (M (n, 3, 3), a (n, 3), n_a (n, 3), assigned (n,))."""
     e, J = contact_residuals(T, data, params)
-    M, a, na, used = smooth
-    R, t = T[:3, :3], T[:3, 3]
-    p = (data[:, 13:16] - t) @ R
-    m = na + np.einsum("nij,nj->ni", M, p - a)
-    size = np.linalg.norm(m, axis=1)
-    nu = m / size[:, None]
-    k = len(data)
-    inv_sn = params[0]
-    e[:3 * k] = ((nu @ R.T + data[:, 16:19]) * inv_sn * used[:, None]).ravel()
-    # ∂(R n(p))/∂ω = R(-[n]× + Dn [p]×), ∂/∂v = -R Dn, Dn = (I - n nᵀ) M / |m|
-    Dn = (np.eye(3) - np.einsum("ni,nj->nij", nu, nu)) @ M / size[:, None, None]
-    Jn = np.zeros((k, 3, 6))
-    Jn[:, :, :3] = R @ (-skew(nu) + Dn @ skew(p))
-    Jn[:, :, 3:] = -R @ Dn
-    J[:3 * k] = (Jn * inv_sn * used[:, None, None]).reshape(3 * k, 6)
+    _smooth_normal_rows(np.ascontiguousarray(T, dtype=np.float64), data, *smooth, params[0], e, J)
     return e, J
+
+
+@njit(cache=True)
+def _smooth_normal_rows(T, data, M, a, na, used, inv_sn, e, J):
+    """Overwrite the 3n normal rows of e and J with r_n = R n(p) + ñ, n = m/|m|, m = n_a + M (p - a),
+    p = Rᵀ(x̃ - t): ∂/∂ω = R(-[n]× + Dn [p]×), ∂/∂v = -R Dn, Dn = (I - n nᵀ) M / |m|."""
+    R, t = np.ascontiguousarray(T[:3, :3]), T[:3, 3].copy()
+    Rt = np.ascontiguousarray(R.T)
+    for i in range(data.shape[0]):
+        rows = slice(3 * i, 3 * i + 3)
+        if not used[i]:
+            e[rows] = 0.0
+            J[rows] = 0.0
+            continue
+        p = Rt @ (data[i, 13:16] - t)
+        m = na[i] + M[i] @ (p - a[i])
+        size = np.sqrt(m @ m)
+        nu = m / size
+        e[rows] = (R @ nu + data[i, 16:19]) * inv_sn
+        Dn = (np.eye(3) - np.outer(nu, nu)) @ M[i] / size
+        J[rows, :3] = R @ (Dn @ _hat(p) - _hat(nu)) * inv_sn  # Dn, the hats: fresh, contiguous
+        J[rows, 3:] = -(R @ Dn) * inv_sn
+
+
+@njit(cache=True)
+def _hat(v):
+    """[v]× of one vector (3,) -> (3, 3), inside compiled kernels (geometry.metrics.skew outside)."""
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
 def _smooth_error(data, params, smooth, key, this, values, H):
