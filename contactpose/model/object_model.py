@@ -215,6 +215,10 @@ def _diameter_bytes(num_vertices):
     return HULL_BYTES_PER_VERTEX * num_vertices + 256 * min(num_vertices, 4000) * 32
 
 
+#: ObjectModel.smooth_normals blends the normals of facets at a vertex only within this angle.
+CREASE_DEG = 30.0
+
+
 def merged_mesh(vertices, faces):
     """A trimesh copy with coincident vertices merged (face order kept), for topology."""
     merged = trimesh.Trimesh(vertices, faces, process=False)
@@ -437,11 +441,20 @@ class ObjectModel:
     @cached_property
     def smooth_normals(self):
         """(M (m, 3, 3), corner normal (m, 3)): the normal interpolated over each facet from its
-        vertices' normals (trimesh's, of the vertex-merged mesh) is m(p) = n_a + M (p - a) for
-        a point p (object frame; the barycentric coordinates of its projection on the plane),
-        to be normalised; a = the facet's first vertex."""
+        corners' normals is m(p) = n_a + M (p - a) for a point p (object frame; the barycentric
+        coordinates of its projection on the plane), to be normalised; a = the facet's first
+        vertex. A corner's normal is the area-weighted mean of the normals of the facets at that
+        vertex (vertex-merged mesh) within CREASE_DEG of the facet's own: across a sharp edge
+        the normals are not blended."""
         merged = merged_mesh(self.vertices, self.faces)
-        vn = np.asarray(merged.vertex_normals)[np.asarray(merged.faces)]  # (m, 3 corners, 3)
+        faces = np.asarray(merged.faces)
+        around = np.asarray(merged.vertex_faces)[faces]  # (m, 3, K) facets at each corner, -1 padded
+        normals, areas = self.planes.normals, self.planes.areas
+        near = (around >= 0) & (np.einsum("mj,mckj->mck", normals, normals[np.maximum(around, 0)])
+                                >= np.cos(np.radians(CREASE_DEG)))
+        weight = np.where(near, areas[np.maximum(around, 0)], 0.0)
+        vn = np.einsum("mck,mckj->mcj", weight, normals[np.maximum(around, 0)])
+        vn /= np.linalg.norm(vn, axis=2, keepdims=True)
         tri = self.triangles
         E = np.stack([tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]], axis=2)  # (m, 3, 2)
         G = np.linalg.pinv(E)  # (m, 2, 3): barycentric (λ_b, λ_c) of p - a, projected

@@ -329,7 +329,7 @@ def contact_factor(data, params, key=POSE_KEY):
 
 def smooth_contact_factor(model, contacts, facets, tolerance, key=POSE_KEY, point_to_facet=True):
     """The batched contact factor with each contact's normal residual taken against the
-    normal interpolated over its facet from the vertex normals (ObjectModel.smooth_normals)
+    normal interpolated over its facet from its corners' normals (ObjectModel.smooth_normals)
     at the contact's place, r_n = R n(p) + ñ, n(p) = m(p)/|m(p)|, p = Rᵀ(x̃ - t), instead of the
     facet's own normal: on a fine tessellation of a smooth surface the normal then changes
     continuously from facet to facet. The offset and lateral rows are the contact factor's.

@@ -81,7 +81,7 @@ class PoseTrack:
     pose, or None (then the first touch must determine the pose); point_to_facet : the lateral
     residual of a contact outside its triangle (factor_graph's contact factor); contact_model :
     "facets" (factor_graph's contact factor on each contact's facet plane), "smooth" (the same
-    with the normal interpolated over the facet from its vertex normals, for fine
+    with the normal interpolated over the facet from its corners' normals, for fine
     tessellations of smooth surfaces: factor_graph.smooth_contact_factor; no robust kernel),
     "surface" (the contact on a face, an edge or a vertex, its normal in that feature's normal
     cone, solvers.surface.surface_factor; no robust kernel), or "auto" (default): "smooth" on
