@@ -216,9 +216,14 @@ def _contact_rows(M, data, params, e, J):
                     J[row, 3] = -u0 * inv_sx
                     J[row, 4] = -u1 * inv_sx
                     J[row, 5] = -u2 * inv_sx
-    if kernel == 0:
-        return
-    # per-contact robust kernel: ẽ = f e, ∂ẽ = f ∂e + (g' - f) û ûᵀ ∂e
+    if kernel != 0:
+        _robust_rows(e, J, n, lateral, kernel, k, want_j)
+
+
+@njit(cache=True)
+def _robust_rows(e, J, n, lateral, kernel, k, want_j):
+    """The per-contact robust kernel on the contact factor's rows, in place:
+    ẽ = f e, ∂ẽ = f ∂e + (g' - f) û ûᵀ ∂e (``_robust_scale``)."""
     rows = np.empty(5, np.int64)
     nrow = 5 if lateral else 4
     for i in range(n):
@@ -327,16 +332,16 @@ def contact_factor(data, params, key=POSE_KEY):
     return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(m), [key], fn)
 
 
-def smooth_contact_factor(model, contacts, facets, tolerance, key=POSE_KEY, point_to_facet=True):
+def smooth_contact_factor(model, contacts, facets, tolerance, key=POSE_KEY, point_to_facet=True, robust="huber"):
     """The batched contact factor with each contact's normal residual taken against the
     normal interpolated over its facet from its corners' normals (ObjectModel.smooth_normals)
     at the contact's place, r_n = R n(p) + ñ, n(p) = m(p)/|m(p)|, p = Rᵀ(x̃ - t), instead of the
     facet's own normal: on a fine tessellation of a smooth surface the normal then changes
-    continuously from facet to facet. The offset and lateral rows are the contact factor's.
-    No robust kernel. A gtsam.CustomFactor on ``key``."""
+    continuously from facet to facet. The offset and lateral rows are the contact factor's,
+    and so is the per-contact robust kernel. A gtsam.CustomFactor on ``key``."""
     facets = np.asarray(facets)
     data = pack_contacts(model, contacts, facets)
-    params = kernel_params(tolerance, "none", point_to_facet)
+    params = kernel_params(tolerance, robust, point_to_facet)
     safe = np.maximum(facets, 0)
     M, corner = model.smooth_normals
     smooth = (np.ascontiguousarray(M[safe]), np.ascontiguousarray(model.triangles[safe, 0]),
@@ -348,8 +353,12 @@ def smooth_contact_factor(model, contacts, facets, tolerance, key=POSE_KEY, poin
 def smooth_contact_residuals(T, data, params, smooth):
     """The smooth factor's error (m,) and Jacobian (m, 6) at a pose T (4, 4): see
     :func:`smooth_contact_factor`; smooth = (M (n, 3, 3), a (n, 3), n_a (n, 3), assigned (n,))."""
-    e, J = contact_residuals(T, data, params)
+    plain = params.copy()
+    plain[5] = 0.0  # the kernel goes on after the normal rows are replaced
+    e, J = contact_residuals(T, data, plain)
     _smooth_normal_rows(np.ascontiguousarray(T, dtype=np.float64), data, *smooth, params[0], e, J)
+    if params[5] != 0.0:
+        _robust_rows(e, J, len(data), params[4] != 0.0, int(params[5]), params[2], True)
     return e, J
 
 

@@ -82,7 +82,7 @@ class PoseTrack:
     residual of a contact outside its triangle (factor_graph's contact factor); contact_model :
     "facets" (factor_graph's contact factor on each contact's facet plane), "smooth" (the same
     with the normal interpolated over the facet from its corners' normals, for fine
-    tessellations of smooth surfaces: factor_graph.smooth_contact_factor; no robust kernel),
+    tessellations of smooth surfaces: factor_graph.smooth_contact_factor),
     "surface" (the contact on a face, an edge or a vertex, its normal in that feature's normal
     cone, solvers.surface.surface_factor; no robust kernel), or "auto" (default): "smooth" on
     a model of surface regions (a fine tessellation, ObjectModel.has_regions), else "facets".
@@ -94,7 +94,7 @@ class PoseTrack:
             raise ContactPoseError(f"contact_model must be one of {CONTACT_MODELS}, got {contact_model!r}")
         if contact_model == "auto":
             contact_model = "smooth" if model.has_regions else "facets"
-        self.contact_model, self.point_to_facet = contact_model, point_to_facet
+        self.contact_model, self.point_to_facet, self.robust = contact_model, point_to_facet, robust
         if not isinstance(tolerance, Tolerance):
             raise ContactPoseError(f"tolerance must be a contactpose.Tolerance, got {type(tolerance).__name__}")
         if prior is not None and not isinstance(prior, PosePrior):
@@ -167,8 +167,8 @@ class PoseTrack:
             return (surface_factor(self.model, local, facets, self.tolerance, k),
                     surface_factor(self.model, local, facets, self.tolerance, k))
         if self.contact_model == "smooth":
-            return (fg.smooth_contact_factor(self.model, local, facets, self.tolerance, k, self.point_to_facet),
-                    fg.smooth_contact_factor(self.model, local, facets, self.tolerance, k, False))
+            return (fg.smooth_contact_factor(self.model, local, facets, self.tolerance, k, self.point_to_facet, self.robust),
+                    fg.smooth_contact_factor(self.model, local, facets, self.tolerance, k, False, self.robust))
         data = fg.pack_contacts(self.model, local, facets)
         return fg.contact_factor(data, self.params, key=k), fg.contact_factor(data.copy(), self.spread_params, key=k)
 
