@@ -67,7 +67,7 @@ ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "results" / "sequential"
 SETTINGS = dict(steps=30, radius_frac=0.02, position_noise_frac=0.0025, normal_noise_deg=1.0, hand_rot_deg=10.0,
                 hand_trans_frac=0.1, slip_deg=1.0, slip_trans_frac=0.005, lost_deg=10.0, lost_frac=0.1, seed=18,
-                contact_model="auto")
+                contact_model="facets")
 METHODS = ("track", "batch", "relocalize", "pf")
 STRATEGIES = ("suggested", "random")
 #: Particles of the particle-filter baseline.
@@ -278,7 +278,7 @@ def main(argv=None):
     parser.add_argument("--steps", type=int, default=SETTINGS["steps"], help="touches after the first grasp")
     parser.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS), help="tracking methods to run")
     parser.add_argument("--max-touches", type=int, default=15, help="active: touches per sequence at most")
-    parser.add_argument("--contact-model", default=SETTINGS["contact_model"], choices=("auto", "facets", "smooth", "surface"),
+    parser.add_argument("--contact-model", default=SETTINGS["contact_model"], choices=("facets", "smooth", "surface"),
                         help="the tracks' contact model (PoseTrack)")
     parser.add_argument("--out", default=str(OUT))
     args = parser.parse_args(argv)

@@ -40,7 +40,7 @@ RELINEARIZE_THRESHOLD = 1e-8
 #: (χ²₆ at 1 - 1e-6: a pose that much less likely than the best), and the distance within which
 #: two tracks are one pose (rotation in degrees, translation as a fraction of the diameter).
 MAX_TRACKS = 20
-CONTACT_MODELS = ("auto", "facets", "surface", "smooth")
+CONTACT_MODELS = ("facets", "smooth", "surface")
 #: Associated touches: after the update, each contact takes its best-fitting facet again under
 #: the updated pose, and the touch's factor is swapped while that changes, at most this often.
 REASSOCIATE = 5
@@ -80,20 +80,17 @@ class PoseTrack:
     Tolerance (σ_x, σ_n); robust : "huber" | "cauchy" | "none"; prior : PosePrior on the first
     pose, or None (then the first touch must determine the pose); point_to_facet : the lateral
     residual of a contact outside its triangle (factor_graph's contact factor); contact_model :
-    "facets" (factor_graph's contact factor on each contact's facet plane), "smooth" (the same
-    with the normal interpolated over the facet from its corners' normals, for fine
-    tessellations of smooth surfaces: factor_graph.smooth_contact_factor),
-    "surface" (the contact on a face, an edge or a vertex, its normal in that feature's normal
-    cone, solvers.surface.surface_factor; no robust kernel), or "auto" (default): "smooth" on
-    a model of surface regions (a fine tessellation, ObjectModel.has_regions), else "facets".
+    "facets" (default: factor_graph's contact factor on each contact's facet plane), "smooth"
+    (the same with the normal interpolated over the facet from its corners' normals, for fine
+    tessellations of smooth surfaces: factor_graph.smooth_contact_factor), or "surface" (the
+    contact on a face, an edge or a vertex, its normal in that feature's normal cone,
+    solvers.surface.surface_factor; no robust kernel).
     """
 
     def __init__(self, model, contacts, facets, pose, tolerance, *, robust="huber", prior=None, point_to_facet=True,
-                 contact_model="auto"):
+                 contact_model="facets"):
         if contact_model not in CONTACT_MODELS:
             raise ContactPoseError(f"contact_model must be one of {CONTACT_MODELS}, got {contact_model!r}")
-        if contact_model == "auto":
-            contact_model = "smooth" if model.has_regions else "facets"
         self.contact_model, self.point_to_facet, self.robust = contact_model, point_to_facet, robust
         if not isinstance(tolerance, Tolerance):
             raise ContactPoseError(f"tolerance must be a contactpose.Tolerance, got {type(tolerance).__name__}")
@@ -318,7 +315,7 @@ class TrackSet:
     """
 
     def __init__(self, model, contacts, starts, tolerance, *, max_tracks=MAX_TRACKS, prune_chi2=PRUNE_CHI2,
-                 merge_deg=MERGE_DEG, merge_frac=MERGE_FRAC, robust="huber", contact_model="auto"):
+                 merge_deg=MERGE_DEG, merge_frac=MERGE_FRAC, robust="huber", contact_model="facets"):
         if not starts:
             raise ContactPoseError("a TrackSet needs at least one start (facets, pose)")
         self.max_tracks, self.prune_chi2 = check_count(max_tracks, "max_tracks", minimum=1), float(prune_chi2)
