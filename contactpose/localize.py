@@ -41,6 +41,7 @@ from contactpose.search.tree import (
     sorted_rows,
 )
 from contactpose.solvers import factor_graph as fg
+from contactpose.solvers import residuals as res
 from contactpose.solvers.closed_form import fit_poses
 from contactpose.solvers.lm import fit_lm_all
 from contactpose.types import (
@@ -442,7 +443,7 @@ def _members_in_chunks(model, contacts, tuples, tolerance, prior, members_deadli
 
 def _member_facets(model, contacts, tuples, tolerance, prior):
     """Pose patch tuples (H, n) on the patch planes, give each contact the member facet that
-    fits it best (nearest, with the normal it carries: scoring.rank.fitting_members), re-pose
+    fits it best (nearest, with the normal it carries: solvers.residuals.fitting_members), re-pose
     on those facets and take the members again (research/design.md). -> (H, n) int facets"""
     patches = model.patches
     t0 = None if prior is None else np.broadcast_to(prior.pose[:3, 3], (len(tuples), 3))
@@ -450,7 +451,7 @@ def _member_facets(model, contacts, tuples, tolerance, prior):
     for _ in range(2):
         fit = fit_poses(normals, offsets, contacts.points, contacts.finger_normals,
                         angle_tol=tolerance.normal_noise, t0=t0, centroids=centres)
-        facets = ranking.fitting_members(model, contacts, tuples, fit.R, fit.t, tolerance)
+        facets = res.fitting_members(model, contacts, tuples, fit.R, fit.t, tolerance)
         normals, offsets, centres = model.planes.normals[facets], model.planes.offsets[facets], model.centroids[facets]
     return facets
 

@@ -30,6 +30,11 @@ results/uncertainty_calibration/::
     .venv/bin/python experiments/uncertainty_calibration.py            # full run, ~10 min
     .venv/bin/python experiments/uncertainty_calibration.py --quick    # smoke run, ~1 min
     .venv/bin/python experiments/uncertainty_calibration.py --plot-only
+
+A fine mesh of a smooth surface, the YCB banana (16,384 facets; 4-contact type only)::
+
+    .venv/bin/python experiments/uncertainty_calibration.py --object ycb:011_banana --types 4-contact \
+        --out results/uncertainty_calibration/ycb_banana
 """
 
 from __future__ import annotations
@@ -95,8 +100,8 @@ def run_grasp(model, g, tol, robust, n_samples, rng):
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", unc.SamplingWarning)
         s = unc.sample_pose(model, g.contacts, ref.facets[0], T, cov, tol, robust=robust, n_samples=n_samples,
-                            rng=rng, progress=False)
-    post = unc.PosePosterior(model, g.contacts, ref.facets[0], T, tol, robust=robust)
+                            rng=rng, progress=False, surface=model.has_regions)
+    post = unc.PosePosterior(model, g.contacts, ref.facets[0], T, tol, robust=robust, surface=model.has_regions)
     xi = post.tangent(g.pose)
     # contacts outside their triangle at T* (r_l > 0): there the Laplace Hessian holds the
     # lateral term's curvature, though the posterior is flat on the triangle's side
@@ -214,6 +219,7 @@ def main(argv=None):
     parser.add_argument("--quick", action="store_true", help="few grasps: a smoke run")
     parser.add_argument("--out", default="results/uncertainty_calibration")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--object", default=OBJECT, help=f"object name (default {OBJECT})")
     parser.add_argument("--types", nargs="*", default=list(TYPES), choices=list(TYPES))
     parser.add_argument("--grasps", type=int, help="grasps per type (default 200, --quick 12)")
     parser.add_argument("--plot-only", action="store_true", help="redraw the figure from grasps.csv")
@@ -226,10 +232,10 @@ def main(argv=None):
     sizes = dict(QUICK if args.quick else FULL)
     if args.grasps:
         sizes["grasps"] = args.grasps
-    model = ObjectModel.from_mesh(objects.load(OBJECT))
+    model = ObjectModel.from_mesh(objects.load(args.object))
     tol = Tolerance.from_noise(POSITION_NOISE_FRAC * model.diameter, NORMAL_NOISE_DEG)
     config = dict(
-        seed=args.seed, quick=args.quick, object=OBJECT, position_noise_frac=POSITION_NOISE_FRAC,
+        seed=args.seed, quick=args.quick, object=args.object, position_noise_frac=POSITION_NOISE_FRAC,
         normal_noise_deg=NORMAL_NOISE_DEG, noise="gaussian", where="area",
         types={k: dict(v, lam=list(v["lam"])) for k, v in TYPES.items() if k in args.types},
         levels=LEVELS, hypothesis="true facets, refined by factor_graph.refine_hypotheses(k=1)",

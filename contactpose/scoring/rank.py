@@ -11,10 +11,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from contactpose.model.patches import nearest_members
 from contactpose.scoring.infacet import polished_poses
 from contactpose.solvers import residuals as res
 from contactpose.solvers.closed_form import fit_poses
+from contactpose.solvers.residuals import fitting_members
 from contactpose.solvers.surface import needs_surface, surface_fit
 from contactpose.types import HypothesisArrays, fit_threshold, outlier_penalty
 
@@ -92,16 +92,6 @@ def refined_arrays(model, contacts, refinement, fit, tolerance):
     cost = -np.nan_to_num(refinement.log_evidence, nan=-np.inf)
     return hypothesis_arrays(model, contacts, refinement.facets, fit, tolerance, cost=cost,
                              covariance=refinement.covariance, probability=refinement.probability, order=False)
-
-
-def fitting_members(model, contacts, tuples, R, t, tolerance):
-    """The member facet of each hypothesised patch that fits its contact best under the pose
-    (R (H, 3, 3), t (H, 3)): least whitened distance and normal residual
-    (model.patches.nearest_members). tuples : (H, n) patch indices  ->  (H, n) facets"""
-    normals = -np.einsum("hji,nj->hni", R, contacts.finger_normals)
-    weight = (tolerance.position_noise / tolerance.normal_noise) ** 2
-    return nearest_members(model.member_groups, model.triangles, tuples, res.to_object_frame(R, t, contacts.points),
-                           (model.planes.normals, normals, weight), (model.centroids, model.facet_radii))
 
 
 def polish(model, contacts, arrays, tolerance):

@@ -42,8 +42,8 @@ of the closed-form ranking, from their closed-form poses. With a prior, rows who
 contradicts the prior's are dropped (:func:`prior_gate`), the rest are posed in closed form
 with the prior as extra observations (:func:`prior_closed_form`) and ranked by contact χ²
 plus prior Mahalanobis distance; the best k are refined from those poses. When the model
-has patches (nearly coplanar facets searched as one), each contact takes the member facet
-of its patch nearest to it under the current pose, before and after LM (:func:`nearest_facets`).
+has patches (facets searched as one unit), each contact takes the member facet of its patch
+that fits it best under the current pose, before and after LM (:func:`nearest_facets`).
 
 LM runs twice: a screening pass (:data:`SCREEN`, loose stopping) over all k, then a polish
 (:func:`lm_params`) of the hypotheses the screen gives probability >= POLISH_PROBABILITY.
@@ -88,7 +88,6 @@ from scipy.spatial.transform import Rotation
 from contactpose.contacts import Contacts
 from contactpose.errors import ContactPoseError, check_count
 from contactpose.geometry.kernels import closest_point_triangle, point_triangle_distance
-from contactpose.model.patches import nearest_members
 from contactpose.solvers import residuals as res
 from contactpose.solvers.closed_form import wahba
 from contactpose.types import DEFAULT_REFINE, ROBUST, HypothesisArrays, PosePrior, fit_threshold, outlier_penalty
@@ -103,7 +102,7 @@ LATERAL_ZERO_REL = 1e-9
 #: χ²₃ quantile at 1 - 1e-9: a hypothesis whose rotation disagrees more with the prior's is
 #: not screened when a prior is given (see :func:`prior_gate`).
 PRIOR_GATE_CHI2 = 44.841275388361254
-#: After LM, contacts that lie nearer another member of their patch move to it and LM runs
+#: After LM, contacts that another member of their patch fits better move to it and LM runs
 #: again, at most this many times per hypothesis (see :func:`nearest_facets`).
 REASSIGN_ROUNDS = 2
 #: With a prior, when no hypothesis agrees with it and fits the contacts within noise,
@@ -583,7 +582,7 @@ def refine_hypotheses(model, contacts, arrays, tolerance, *, prior=None, robust=
                 iters[j] += it
                 secs[j] += sec
                 cpu_secs[j] += cpu
-                moved = nearest_facets(model, contacts, facets[j:j + 1], poses[j:j + 1])[0]
+                moved = nearest_facets(model, contacts, facets[j:j + 1], poses[j:j + 1], tolerance)[0]
                 if np.array_equal(moved, facets[j]):
                     break
                 facets[j] = moved
@@ -608,20 +607,25 @@ def refine_hypotheses(model, contacts, arrays, tolerance, *, prior=None, robust=
                       cpu_secs[order], robust, prior is not None, agreeing)
 
 
-def nearest_facets(model, contacts, facets, poses):
-    """Each contact's facet moved to the member of its patch nearest to it under the pose.
+def nearest_facets(model, contacts, facets, poses, tolerance):
+    """Each contact's facet moved to the member of its patch that fits it best under the pose.
 
-    With patches (connected, nearly coplanar facets searched as one unit) a hypothesis's
-    facet within a patch depends on the pose, and the lateral residual of the wrong member
-    would hold the contact to it. Without patches in the model, ``facets`` unchanged.
+    With patches (connected facets searched as one unit) a hypothesis's facet within a patch
+    depends on the pose, and the residuals of the wrong member would hold the contact to it.
+    The member is the one of least whitened distance² plus normal residual²
+    (:func:`residuals.fitting_members`, as in the ranking): on a fine mesh of a curved surface
+    neighbouring members differ in normal by more than σ_n, and the nearest member alone
+    biased the rotation (research/uncertainty.md, "Fine meshes"). Without patches in the
+    model, ``facets`` unchanged.
     facets : (H, n) int (-1: unassigned, kept), poses : (H, 4, 4)  ->  (H, n) int
     """
     patches = getattr(model, "patches", None)
     labels = None if patches is None else patches.labels[np.maximum(facets, 0)]
     if patches is None or not np.any(np.diff(patches.indptr)[labels] > 1):
         return facets  # no patches, or every contact's patch is a single facet
-    p_obj = res.to_object_frame(poses[:, :3, :3], poses[:, :3, 3], contacts.points)
-    return np.where(facets >= 0, nearest_members(model.member_groups, model.triangles, labels, p_obj), -1)
+    members = res.fitting_members(model, contacts, np.ascontiguousarray(labels), poses[:, :3, :3], poses[:, :3, 3],
+                                  tolerance)
+    return np.where(facets >= 0, members, -1)
 
 
 def _log_evidence(chi2, cov, prior_cov):
@@ -670,7 +674,7 @@ def _select(model, contacts, arrays, tolerance, prior, k, point_to_facet):
     if prior is None:
         idx = np.arange(h if k == 0 else min(k, h))
         T = np.asarray(arrays.poses)[idx]
-        return idx, T, nearest_facets(model, contacts, np.asarray(arrays.facets)[idx], T), -1
+        return idx, T, nearest_facets(model, contacts, np.asarray(arrays.facets)[idx], T, tolerance), -1
     rows = np.flatnonzero(prior_gate(model, arrays, tolerance, prior))
     agreeing = len(rows)
     if len(rows) == 0:  # the prior contradicts every hypothesis: rank them all anyway
@@ -682,7 +686,7 @@ def _select(model, contacts, arrays, tolerance, prior, k, point_to_facet):
                              contacts.points, contacts.finger_normals, tolerance, prior)
     T = np.zeros((len(rows), 4, 4))
     T[:, :3, :3], T[:, :3, 3], T[:, 3, 3] = R, t, 1.0
-    facets = nearest_facets(model, contacts, facets, T)
+    facets = nearest_facets(model, contacts, facets, T, tolerance)
     score = (_contact_chi2(model, contacts, facets, T, tolerance, point_to_facet) + outlier_penalty(facets)
              + prior_mahalanobis2(R, t, prior))
     best = np.argsort(score, kind="stable")[:len(rows) if k == 0 else k]

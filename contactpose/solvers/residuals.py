@@ -34,6 +34,7 @@ from contactpose.geometry.kernels import (  # 3-tuple kernels
     _t,
     point_triangle_distance,
 )
+from contactpose.model.patches import nearest_members
 
 
 def to_object_frame(R, t, points):
@@ -125,3 +126,14 @@ def paper_cost(r_normal, r_paper_offset):
     r_normal : (H, n, 3), r_paper_offset : (H, n)  ->  (H,)
     """
     return np.einsum("hni,hni->h", r_normal, r_normal) + np.sum(r_paper_offset**2, axis=1)
+
+
+def fitting_members(model, contacts, tuples, R, t, tolerance):
+    """The member facet of each hypothesised patch that fits its contact best under the pose
+    (R (H, 3, 3), t (H, 3)): least whitened distance and normal residual
+    (model.patches.nearest_members): the ranking's and the factor graph's choice of member.
+    tuples : (H, n) patch indices  ->  (H, n) facets"""
+    normals = -np.einsum("hji,nj->hni", R, contacts.finger_normals)
+    weight = (tolerance.position_noise / tolerance.normal_noise) ** 2
+    return nearest_members(model.member_groups, model.triangles, tuples, to_object_frame(R, t, contacts.points),
+                           (model.planes.normals, normals, weight), (model.centroids, model.facet_radii))

@@ -10,8 +10,8 @@ from contactpose.contacts import Contacts, Tolerance
 from contactpose.geometry.kernels import point_triangle_distance
 from contactpose.model.object_model import ObjectModel
 from contactpose.model.patches import GROUP_FACETS, nearest_members
-from contactpose.scoring.rank import fitting_members
 from contactpose.sim import objects
+from contactpose.solvers.residuals import fitting_members
 
 
 @pytest.fixture(scope="module")

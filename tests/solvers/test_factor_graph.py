@@ -513,6 +513,35 @@ def test_facets_follow_the_pose_within_a_patch(box):
     assert rotation_error_deg(ref.poses[0], g.pose) < 1.0 and ref.contact_chi2[0] < 1.0
 
 
+def test_facets_move_to_the_member_that_fits_on_a_curved_region():
+    """On a curved region a contact moves to the member of least d²/σ_x² + |R n_f + ñ|²/σ_n²
+    (brute force over the members), not merely the nearest one: a neighbour's normal differs
+    by more than σ_n there, and the nearest member biased the rotation (research/uncertainty.md)."""
+    from contactpose.geometry.kernels import point_triangle_distance
+    from contactpose.model.object_model import ObjectModel
+    from contactpose.sim import objects
+
+    model = ObjectModel.from_mesh(objects.load("banana512"), patch_tol_deg=10.0, facet_pairs=False)
+    rng = np.random.default_rng(5)
+    tol = _tolerance(model, position_frac=0.01, normal_deg=1.0)
+    differs = 0
+    for _ in range(30):
+        g = simulate.grasp(model, rng, n=4, position_noise=tol.position_noise, normal_noise_deg=1.0)
+        poses = np.stack([g.pose, g.pose])
+        facets = np.stack([g.facets, g.facets])
+        got = fg.nearest_facets(model, g.contacts, facets, poses, tol)[0]
+        R, t = g.pose[:3, :3], g.pose[:3, 3]
+        p = (g.contacts.points - t) @ R
+        for i, f in enumerate(g.facets):
+            members = model.patches.of(model.patches.labels[f])
+            d = point_triangle_distance(np.repeat(p[i][None], len(members), axis=0), model.triangles[members])
+            r_n = model.planes.normals[members] @ R.T + g.contacts.finger_normals[i]
+            cost = d**2 / tol.position_noise**2 + np.sum(r_n**2, axis=1) / tol.normal_noise**2
+            assert cost[list(members).index(got[i])] == pytest.approx(cost.min(), rel=1e-9, abs=1e-12)
+            differs += members[np.argmin(d)] != got[i]
+    assert differs >= 5  # the normal term decided some contacts against the nearest member
+
+
 def test_screen_and_polish_match_a_tight_single_pass(rock):
     rng = np.random.default_rng(22)
     tol = _tolerance(rock)
