@@ -52,11 +52,21 @@ deviation about the object's principal axes (longest first). Writes coverage.csv
 coverage.md::
 
     .venv/bin/python experiments/sequential.py ycb:011_banana rock --part coverage --sequences 200 --steps 10
+
+**Speed** (``--part speed``). The time to add one contact to ``max_tracks`` (20) tracks of a
+held object: 20 ``PoseTrack`` s started from the true pose of a 4-contact grasp moved by a
+random slip each (so that none coincide), then ``--steps`` touches of one contact each (hand
+motion and slip as above, contacts at facet points), associated by each track. Per touch: the
+wall time of all 20 updates (association, iSAM2 update, re-association), one process.
+Writes speed.csv and speed.md::
+
+    .venv/bin/python experiments/sequential.py ycb:011_banana rock --part speed --sequences 10 --steps 30
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import time
 import warnings
 from pathlib import Path
@@ -75,7 +85,7 @@ from contactpose.geometry.sampling import perturb_normals
 from contactpose.model.object_model import merged_mesh
 from contactpose.sim import fingertip, objects
 from contactpose.sim import grasps as simulate
-from contactpose.solvers.track import PoseTrack, TrackSet
+from contactpose.solvers.track import MAX_TRACKS, PoseTrack, TrackSet, checked_motion
 
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "results" / "sequential"
@@ -330,6 +340,53 @@ def run_coverage(names, args, s, out):
     (out / "coverage.md").write_text(f"Settings: {settings}.\n\n{text}\n")
 
 
+# ------------------------------------------------------------------ speed
+
+def speed_sequence(model, rng, s, n_tracks):
+    """Milliseconds per touch of one contact added to n_tracks tracks. -> list of floats"""
+    d = model.diameter
+    tol = Tolerance.from_noise(s["position_noise_frac"] * d, s["normal_noise_deg"])
+    noise = dict(position_noise=tol.position_noise, normal_noise_deg=s["normal_noise_deg"])
+    X = simulate.random_pose(rng, max_translation=0.5 * d)
+    first = simulate.grasp(model, rng, n=4, pose=X, **noise)
+    tracks = [PoseTrack(model, first.contacts, first.facets,
+                        first.pose @ motion(rng, s["slip_deg"], s["slip_trans_frac"] * d), tol)
+              for _ in range(n_tracks)]
+    ms = []
+    for _ in range(s["steps"]):
+        delta = motion(rng, s["hand_rot_deg"], s["hand_trans_frac"] * d)
+        X = delta @ X @ motion(rng, s["slip_deg"], s["slip_trans_frac"] * d)
+        contacts = simulate.grasp(model, rng, n=1, pose=X, **noise).contacts
+        hand = (delta, s["slip_deg"], s["slip_trans_frac"] * d)
+        clock = time.perf_counter()
+        motion_noise = checked_motion(hand)  # once per touch, as TrackSet.add does
+        for t in tracks:
+            t._add(contacts, None, motion_noise)
+        ms.append(1e3 * (time.perf_counter() - clock))
+    return ms
+
+
+def run_speed(names, args, s, out):
+    """The speed part: ms per touch of one contact with MAX_TRACKS tracks."""
+    rows, lines = [], ["| object | facets | tracks | touches | ms per touch, median / p95 | ms per track, median |",
+                       "|---|---:|---:|---:|---:|---:|"]
+    for index, name in enumerate(names):
+        model = ObjectModel.from_mesh(objects.load(name))
+        speed_sequence(model, np.random.default_rng(0), dict(s, steps=2), 2)  # compile and warm up
+        ms = []
+        for q in range(args.sequences):
+            got = speed_sequence(model, np.random.default_rng([s["seed"], 200 + index, q]), s, MAX_TRACKS)
+            rows += [dict(object=name, sequence=q, touch=k + 1, ms=m) for k, m in enumerate(got)]
+            ms += got
+        lines.append(f"| {name} | {model.num_facets} | {MAX_TRACKS} | {len(ms)} | {np.median(ms):.1f} / "
+                     f"{np.percentile(ms, 95):.1f} | {np.median(ms) / MAX_TRACKS:.2f} |")
+        sweep.write_rows(out / "speed.csv", rows)
+    text = "\n".join(lines)
+    print(text, flush=True)
+    (out / "speed.md").write_text(f"One process; load average at the end {os.getloadavg()[0]:.2f} on "
+                                  f"{os.cpu_count()} CPUs.\n\n{text}\n")
+
+
 # ------------------------------------------------------------------ tracking
 
 def run_tracking(names, args, s, out):
@@ -360,7 +417,7 @@ def run_tracking(names, args, s, out):
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("objects", nargs="+")
-    parser.add_argument("--part", choices=("tracking", "active", "coverage"), default="tracking")
+    parser.add_argument("--part", choices=("tracking", "active", "coverage", "speed"), default="tracking")
     parser.add_argument("--sequences", type=int, default=30)
     parser.add_argument("--steps", type=int, default=SETTINGS["steps"], help="touches after the first grasp")
     parser.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS), help="tracking methods to run")
@@ -373,7 +430,7 @@ def main(argv=None):
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     s = dict(SETTINGS, steps=args.steps, contact_model=args.contact_model)
-    {"active": run_active, "coverage": run_coverage, "tracking": run_tracking}[args.part](args.objects, args, s, out)
+    {"active": run_active, "coverage": run_coverage, "speed": run_speed, "tracking": run_tracking}[args.part](args.objects, args, s, out)
     return 0
 
 

@@ -152,8 +152,8 @@ def test_outlier_fingers_quick_writes_prefixed_files_and_names_the_bad_finger(tm
 def test_sequential_smoke(tmp_path):
     """experiments/sequential.py on the rock: one short tracking sequence (a row per touch and
     method, finite errors for the track, the summary table; a second run of one method keeps
-    the others' rows), two active-localization sequences per strategy, and two coverage
-    sequences."""
+    the others' rows), two active-localization sequences per strategy, two coverage
+    sequences, and one speed sequence."""
     main = run_all.load("sequential").main
     assert main(["rock", "--sequences", "1", "--steps", "3", "--out", str(tmp_path)]) == 0
     rows = sweep.read_rows(tmp_path / "steps.csv")
@@ -174,6 +174,9 @@ def test_sequential_smoke(tmp_path):
     assert [r["facets"] for r in cover] == ["given", "associated"] * 2
     assert all(0.0 <= float(r["level"]) <= 1.0 and float(r["sd_axis0_deg"]) > 0 for r in cover)
     assert "| rock | associated | 2 |" in (tmp_path / "coverage.md").read_text()
+    assert main(["rock", "--part", "speed", "--sequences", "1", "--steps", "2", "--out", str(tmp_path)]) == 0
+    speed = sweep.read_rows(tmp_path / "speed.csv")
+    assert len(speed) == 2 and all(float(r["ms"]) > 0 for r in speed)
 
 
 def test_memory_particle_filter_beats_dead_reckoning_on_a_held_object():

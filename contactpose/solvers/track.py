@@ -36,6 +36,8 @@ from contactpose.types import PosePrior, check_rigid
 
 #: iSAM2 relinearises every variable whose update exceeds this (tangent norm) at every update.
 RELINEARIZE_THRESHOLD = 1e-8
+#: iSAM2 back-substitutes every change of the solution larger than this (0: every change).
+WILDFIRE_THRESHOLD = 0.0
 #: TrackSet: tracks kept, the χ² margin above the best beyond which a track is dropped
 #: (χ²₆ at 1 - 1e-6: a pose that much less likely than the best), and the distance within which
 #: two tracks are one pose (rotation in degrees, translation as a fraction of the diameter).
@@ -110,7 +112,7 @@ class PoseTrack:
         params.setRelinearizeThreshold(RELINEARIZE_THRESHOLD)
         params.relinearizeSkip = 1
         dogleg = gtsam.ISAM2DoglegParams()
-        dogleg.setWildfireThreshold(0.0)  # back-substitute every change, however small
+        dogleg.setWildfireThreshold(WILDFIRE_THRESHOLD)
         params.setOptimizationParams(dogleg)
         self.isam = gtsam.ISAM2(params)
         factors, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
