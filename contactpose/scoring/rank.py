@@ -14,7 +14,6 @@ import numpy as np
 from contactpose.scoring.infacet import polished_poses
 from contactpose.solvers import residuals as res
 from contactpose.solvers.closed_form import fit_poses
-from contactpose.solvers.residuals import fitting_members
 from contactpose.solvers.surface import needs_surface, surface_fit
 from contactpose.types import HypothesisArrays, fit_threshold, outlier_penalty
 
@@ -114,7 +113,7 @@ def polish(model, contacts, arrays, tolerance):
     R, t = polished_poses(model, contacts, arrays, rows, tolerance, fit_threshold(contacts.n))
     facets = arrays.facets[rows]
     if model.patch_table is not None:
-        facets = fitting_members(model, contacts, np.ascontiguousarray(model.patches.labels[facets]), R, t, tolerance)
+        facets = res.fitting_members(model, contacts, np.ascontiguousarray(model.patches.labels[facets]), R, t, tolerance)
     fit = arrays.fit.take(rows)
     fit.R, fit.t = R, t
     moved = hypothesis_arrays(model, contacts, facets, fit, tolerance, order=False)

@@ -43,7 +43,7 @@ contradicts the prior's are dropped (:func:`prior_gate`), the rest are posed in 
 with the prior as extra observations (:func:`prior_closed_form`) and ranked by contact χ²
 plus prior Mahalanobis distance; the best k are refined from those poses. When the model
 has patches (facets searched as one unit), each contact takes the member facet of its patch
-that fits it best under the current pose, before and after LM (:func:`nearest_facets`).
+that fits it best under the current pose, before and after LM (:func:`fitting_facets`).
 
 LM runs twice: a screening pass (:data:`SCREEN`, loose stopping) over all k, then a polish
 (:func:`lm_params`) of the hypotheses the screen gives probability >= POLISH_PROBABILITY.
@@ -103,7 +103,7 @@ LATERAL_ZERO_REL = 1e-9
 #: not screened when a prior is given (see :func:`prior_gate`).
 PRIOR_GATE_CHI2 = 44.841275388361254
 #: After LM, contacts that another member of their patch fits better move to it and LM runs
-#: again, at most this many times per hypothesis (see :func:`nearest_facets`).
+#: again, at most this many times per hypothesis (see :func:`fitting_facets`).
 REASSIGN_ROUNDS = 2
 #: With a prior, when no hypothesis agrees with it and fits the contacts within noise,
 #: ``localize`` searches again with the pair tolerances widened by this factor (3σ gates
@@ -582,7 +582,7 @@ def refine_hypotheses(model, contacts, arrays, tolerance, *, prior=None, robust=
                 iters[j] += it
                 secs[j] += sec
                 cpu_secs[j] += cpu
-                moved = nearest_facets(model, contacts, facets[j:j + 1], poses[j:j + 1], tolerance)[0]
+                moved = fitting_facets(model, contacts, facets[j:j + 1], poses[j:j + 1], tolerance)[0]
                 if np.array_equal(moved, facets[j]):
                     break
                 facets[j] = moved
@@ -607,7 +607,7 @@ def refine_hypotheses(model, contacts, arrays, tolerance, *, prior=None, robust=
                       cpu_secs[order], robust, prior is not None, agreeing)
 
 
-def nearest_facets(model, contacts, facets, poses, tolerance):
+def fitting_facets(model, contacts, facets, poses, tolerance):
     """Each contact's facet moved to the member of its patch that fits it best under the pose.
 
     With patches (connected facets searched as one unit) a hypothesis's facet within a patch
@@ -674,7 +674,7 @@ def _select(model, contacts, arrays, tolerance, prior, k, point_to_facet):
     if prior is None:
         idx = np.arange(h if k == 0 else min(k, h))
         T = np.asarray(arrays.poses)[idx]
-        return idx, T, nearest_facets(model, contacts, np.asarray(arrays.facets)[idx], T, tolerance), -1
+        return idx, T, fitting_facets(model, contacts, np.asarray(arrays.facets)[idx], T, tolerance), -1
     rows = np.flatnonzero(prior_gate(model, arrays, tolerance, prior))
     agreeing = len(rows)
     if len(rows) == 0:  # the prior contradicts every hypothesis: rank them all anyway
@@ -686,7 +686,7 @@ def _select(model, contacts, arrays, tolerance, prior, k, point_to_facet):
                              contacts.points, contacts.finger_normals, tolerance, prior)
     T = np.zeros((len(rows), 4, 4))
     T[:, :3, :3], T[:, :3, 3], T[:, 3, 3] = R, t, 1.0
-    facets = nearest_facets(model, contacts, facets, T, tolerance)
+    facets = fitting_facets(model, contacts, facets, T, tolerance)
     score = (_contact_chi2(model, contacts, facets, T, tolerance, point_to_facet) + outlier_penalty(facets)
              + prior_mahalanobis2(R, t, prior))
     best = np.argsort(score, kind="stable")[:len(rows) if k == 0 else k]

@@ -529,7 +529,7 @@ def test_facets_move_to_the_member_that_fits_on_a_curved_region():
         g = simulate.grasp(model, rng, n=4, position_noise=tol.position_noise, normal_noise_deg=1.0)
         poses = np.stack([g.pose, g.pose])
         facets = np.stack([g.facets, g.facets])
-        got = fg.nearest_facets(model, g.contacts, facets, poses, tol)[0]
+        got = fg.fitting_facets(model, g.contacts, facets, poses, tol)[0]
         R, t = g.pose[:3, :3], g.pose[:3, 3]
         p = (g.contacts.points - t) @ R
         for i, f in enumerate(g.facets):
