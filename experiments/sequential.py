@@ -269,8 +269,10 @@ def run_active(names, args, s, out):
 
 # ------------------------------------------------------------------ coverage
 
-def coverage_sequence(model, rng, s, axes):
-    """One sequence tracked twice, on given and on associated facets. -> list of two dicts"""
+def facet_sequence(model, rng, s, per_touch):
+    """A held object touched at facet points (the paper's protocol): a first grasp of 4
+    contacts, then s["steps"] hand motions with slip and ``per_touch`` contacts each.
+    -> (Tolerance, first Grasp, [(ΔT (4, 4), Grasp)], the last true pose (4, 4))"""
     d = model.diameter
     tol = Tolerance.from_noise(s["position_noise_frac"] * d, s["normal_noise_deg"])
     noise = dict(position_noise=tol.position_noise, normal_noise_deg=s["normal_noise_deg"])
@@ -280,7 +282,14 @@ def coverage_sequence(model, rng, s, axes):
     for _ in range(s["steps"]):
         delta = motion(rng, s["hand_rot_deg"], s["hand_trans_frac"] * d)
         X = delta @ X @ motion(rng, s["slip_deg"], s["slip_trans_frac"] * d)
-        touches.append((delta, simulate.grasp(model, rng, n=2, pose=X, **noise)))
+        touches.append((delta, simulate.grasp(model, rng, n=per_touch, pose=X, **noise)))
+    return tol, first, touches, X
+
+
+def coverage_sequence(model, rng, s, axes):
+    """One sequence tracked twice, on given and on associated facets. -> list of two dicts"""
+    d = model.diameter
+    tol, first, touches, X = facet_sequence(model, rng, s, 2)
     rows = []
     for facets in ("given", "associated"):
         track = PoseTrack(model, first.contacts, first.facets, first.pose, tol)
@@ -345,23 +354,16 @@ def run_coverage(names, args, s, out):
 def speed_sequence(model, rng, s, n_tracks):
     """Milliseconds per touch of one contact added to n_tracks tracks. -> list of floats"""
     d = model.diameter
-    tol = Tolerance.from_noise(s["position_noise_frac"] * d, s["normal_noise_deg"])
-    noise = dict(position_noise=tol.position_noise, normal_noise_deg=s["normal_noise_deg"])
-    X = simulate.random_pose(rng, max_translation=0.5 * d)
-    first = simulate.grasp(model, rng, n=4, pose=X, **noise)
+    tol, first, touches, _ = facet_sequence(model, rng, s, 1)
     tracks = [PoseTrack(model, first.contacts, first.facets,
                         first.pose @ motion(rng, s["slip_deg"], s["slip_trans_frac"] * d), tol)
               for _ in range(n_tracks)]
     ms = []
-    for _ in range(s["steps"]):
-        delta = motion(rng, s["hand_rot_deg"], s["hand_trans_frac"] * d)
-        X = delta @ X @ motion(rng, s["slip_deg"], s["slip_trans_frac"] * d)
-        contacts = simulate.grasp(model, rng, n=1, pose=X, **noise).contacts
-        hand = (delta, s["slip_deg"], s["slip_trans_frac"] * d)
+    for delta, g in touches:
         clock = time.perf_counter()
-        motion_noise = checked_motion(hand)  # once per touch, as TrackSet.add does
+        hand = checked_motion((delta, s["slip_deg"], s["slip_trans_frac"] * d))  # once per touch, as TrackSet.add
         for t in tracks:
-            t._add(contacts, None, motion_noise)
+            t._add(g.contacts, None, hand)
         ms.append(1e3 * (time.perf_counter() - clock))
     return ms
 
