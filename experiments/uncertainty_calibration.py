@@ -106,7 +106,7 @@ def run_grasp(model, g, tol, robust, n_samples, rng):
     # contacts outside their triangle at T* (r_l > 0): there the Laplace Hessian holds the
     # lateral term's curvature, though the posterior is flat on the triangle's side
     e, _ = fg.contact_residuals(T, post.data, fg.kernel_params(tol, "none"), jacobian=False)
-    n_outside = int(np.sum(e[4 * g.contacts.n:] > 0))
+    n_outside = int(np.sum(fg.lateral_norms(e, g.contacts.n) > 0))
     d2 = float(xi[0] @ np.linalg.solve(cov, xi[0]))
     # how the sample spread differs from Laplace: per-axis sd ratio, and the volume ratio
     sd_ratio = np.sqrt(np.diag(s.covariance) / np.diag(cov))

@@ -5,8 +5,9 @@ One ``Pose3`` variable per hypothesis: T_world_object. Its graph holds
 
 * one batched contact factor (a ``gtsam.CustomFactor`` over all n contacts) whose error
   is exactly the residuals of :mod:`contactpose.solvers.residuals`, whitened by the sensor noise:
-  ``[r_n / σ_n (3n: x, y, z of contact 0, then 1, ...), r_o / σ_x (n), r_l / σ_x (n,
-  point_to_facet only)]``;
+  ``[r_n / σ_n (3n: x, y, z of contact 0, then 1, ...), r_o / σ_x (n), w / σ_x (2n,
+  point_to_facet only)]``, where w is the in-plane offset of the contact from its triangle
+  in the facet's in-plane basis, |w| = r_l (two rows per contact, contact-major);
 * optionally a ``PriorFactorPose3`` from a :class:`~contactpose.types.PosePrior`.
 
 Jacobians are analytic, in GTSAM's tangent order and convention: rotation first, right
@@ -15,14 +16,16 @@ and ``t' = t + R v``. With ``p = Rᵀ(x̃ - t)`` this gives ``dp/dξ = [[p]×, -
 
 * ``∂r_n/∂ξ = [-R [n_k]×, 0]``,
 * ``∂r_o/∂ξ = [(n_k × p)ᵀ, -n_kᵀ]``,
-* ``∂r_l/∂ξ = [(u × p)ᵀ, -uᵀ]`` with u the unit in-plane part of ``p - closest(p, V_k)``;
-  the row is zero when the contact lies over its triangle (r_l = 0, the residual is flat).
+* ``∂w/∂ξ = P [[p]×, -I]`` with P = u uᵀ beside an edge (u = w/|w|) and I - n_k n_kᵀ beside
+  a corner; the rows are zero when the contact lies over its triangle (w = 0, flat). The
+  vector w, not its norm r_l, so that Gauss-Newton's model of r_l² keeps all its curvature
+  in p (:func:`_lateral_rows`; research/tracking.md, "iSAM2 against batch LM").
 
 Noise: the factor uses a ``Unit`` noise model and whitens inside (divides by σ), because
 the robust kernel must act on whitened errors.
 
 Robust kernels act per contact, on the norm s_i of the contact's whitened block (its
-4 or 5 rows), not on the whole factor: GTSAM's ``noiseModel.Robust`` reweights a factor's
+4 or 6 rows), not on the whole factor: GTSAM's ``noiseModel.Robust`` reweights a factor's
 error as one block, which on a batched factor would down-weight all contacts together.
 The factor returns ``ẽ_i = sqrt(2 ρ(s_i)) e_i / s_i``, so that ``½|ẽ_i|² = ρ(s_i)`` exactly
 (the "square-rooted" robust residual) with GTSAM's ``mEstimator`` losses
@@ -31,7 +34,7 @@ The optimum is the robust M-estimate ``argmin Σ_i ρ(s_i)``; one factor per con
 ``noiseModel.Robust`` (block reweighting) has the same cost and optimum (a test).
 
 Kernel width: an inlier block holds about 3 informative whitened components (2 normal,
-1 offset; r_l is 0 for a contact inside its triangle), so s_i² ~ χ²(3). k = sqrt(χ²₃(0.95))
+1 offset; w is 0 for a contact inside its triangle), so s_i² ~ χ²(3). k = sqrt(χ²₃(0.95))
 = 2.80 leaves 95 % of inlier contacts in the quadratic zone (Huber: no efficiency loss
 there), and a displaced contact (tens of σ) keeps only a bounded (Huber) or vanishing
 (Cauchy) influence. The scalar textbook value 1.345 would down-weight 61 % of the inlier
@@ -147,7 +150,8 @@ def _contact_rows(M, data, params, e, J):
 
     M : (4, 4) pose; data : (n, 20) packed contacts; params : from :func:`kernel_params`;
     e : (m,) out; J : (m, 6) out, written unless it has 0 rows. Rows: 3n normal
-    (contact-major), n offset, then n lateral when point-to-facet is on. The rows of an
+    (contact-major), n offset, then 2n lateral (:func:`_lateral_rows`, contact-major) when
+    point-to-facet is on. The rows of an
     unassigned contact (data[i, 19] == 0) are 0.
     """
     n = data.shape[0]
@@ -159,7 +163,7 @@ def _contact_rows(M, data, params, e, J):
     t = M[:3, 3]
     for i in range(n):
         if data[i, 19] == 0.0:  # unassigned finger: no residual
-            _zero_rows(e, J, (3 * i, 3 * i + 1, 3 * i + 2, 3 * n + i, 4 * n + i), lateral, want_j)
+            _zero_rows(e, J, (3 * i, 3 * i + 1, 3 * i + 2, 3 * n + i, 4 * n + 2 * i, 4 * n + 2 * i + 1), lateral, want_j)
             continue
         nk = data[i, 0:3]
         x = data[i, 13:16]
@@ -193,41 +197,58 @@ def _contact_rows(M, data, params, e, J):
             J[row, 4] = -nk[1] * inv_sx
             J[row, 5] = -nk[2] * inv_sx
         if lateral:
-            # r_l = |in-plane part of p - closest(p)|; ∂/∂ξ = [(u × p)ᵀ, -uᵀ], u its direction
-            p = np.array((p0, p1, p2))
-            c = closest_point_triangle(p, data[i, 4:7], data[i, 7:10], data[i, 10:13])
-            w0, w1, w2 = p0 - c[0], p1 - c[1], p2 - c[2]
-            h = nk[0] * w0 + nk[1] * w1 + nk[2] * w2
-            w0, w1, w2 = w0 - h * nk[0], w1 - h * nk[1], w2 - h * nk[2]
-            rl = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
-            row = 4 * n + i
-            if rl <= tiny:
-                rl = 0.0
-            e[row] = rl * inv_sx
-            if want_j:
-                for c6 in range(6):
-                    J[row, c6] = 0.0
-                if rl > 0.0:
-                    u0, u1, u2 = w0 / rl, w1 / rl, w2 / rl
-                    J[row, 0] = (u1 * p2 - u2 * p1) * inv_sx
-                    J[row, 1] = (u2 * p0 - u0 * p2) * inv_sx
-                    J[row, 2] = (u0 * p1 - u1 * p0) * inv_sx
-                    J[row, 3] = -u0 * inv_sx
-                    J[row, 4] = -u1 * inv_sx
-                    J[row, 5] = -u2 * inv_sx
+            _lateral_rows(e, J, 4 * n + 2 * i, nk, (p0, p1, p2), data[i], inv_sx, tiny, want_j)
     if kernel != 0:
         _robust_rows(e, J, n, lateral, kernel, k, want_j)
+
+
+@njit(cache=True)
+def _lateral_rows(e, J, row, nk, p, datum, inv_sx, tiny, want_j):
+    """The two lateral rows of one contact, from ``row`` on: w = the in-plane part of
+    p - closest(p, V_k), in the facet's in-plane basis (e_1 along its first edge, e_2 = n_k × e_1),
+    so that |w| = r_l. w is 0 over the triangle and affine in p on each side of it, so that
+    Gauss-Newton's model of r_l² is exact there: ∂w/∂ξ = P [[p]×, -I] with P = I - n_k n_kᵀ
+    beside a corner (w = p - corner, in-plane) and P = u uᵀ beside an edge (u = w/|w|).
+    The scalar r_l of the same cost bends around each corner (its Hessian holds (I - u uᵀ)/r_l),
+    which Gauss-Newton leaves out; that stalled iSAM2's trust region on fine meshes."""
+    a, b, c3 = datum[4:7], datum[7:10], datum[10:13]
+    q = np.array(p)
+    c = closest_point_triangle(q, a, b, c3)
+    w = q - c
+    w -= (nk[0] * w[0] + nk[1] * w[1] + nk[2] * w[2]) * nk
+    rl = np.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
+    e1 = b - a
+    e1 /= np.sqrt(e1[0] * e1[0] + e1[1] * e1[1] + e1[2] * e1[2])
+    e2 = np.array((nk[1] * e1[2] - nk[2] * e1[1], nk[2] * e1[0] - nk[0] * e1[2], nk[0] * e1[1] - nk[1] * e1[0]))
+    outside = rl > tiny
+    for j, ej in enumerate((e1, e2)):
+        e[row + j] = (ej[0] * w[0] + ej[1] * w[1] + ej[2] * w[2]) * inv_sx if outside else 0.0
+        if not want_j:
+            continue
+        for c6 in range(6):
+            J[row + j, c6] = 0.0
+        if not outside:
+            continue
+        corner = (c == a).all() or (c == b).all() or (c == c3).all()
+        # the row e_jᵀ P [[p]×, -I]: [(v × p)ᵀ, -vᵀ] with v = e_j (corner) or (e_j·u) u (edge)
+        v = ej.copy() if corner else (ej[0] * w[0] + ej[1] * w[1] + ej[2] * w[2]) / (rl * rl) * w
+        J[row + j, 0] = (v[1] * p[2] - v[2] * p[1]) * inv_sx
+        J[row + j, 1] = (v[2] * p[0] - v[0] * p[2]) * inv_sx
+        J[row + j, 2] = (v[0] * p[1] - v[1] * p[0]) * inv_sx
+        J[row + j, 3] = -v[0] * inv_sx
+        J[row + j, 4] = -v[1] * inv_sx
+        J[row + j, 5] = -v[2] * inv_sx
 
 
 @njit(cache=True)
 def _robust_rows(e, J, n, lateral, kernel, k, want_j):
     """The per-contact robust kernel on the contact factor's rows, in place:
     ẽ = f e, ∂ẽ = f ∂e + (g' - f) û ûᵀ ∂e (``_robust_scale``)."""
-    rows = np.empty(5, np.int64)
-    nrow = 5 if lateral else 4
+    rows = np.empty(6, np.int64)
+    nrow = 6 if lateral else 4
     for i in range(n):
         rows[0], rows[1], rows[2], rows[3] = 3 * i, 3 * i + 1, 3 * i + 2, 3 * n + i
-        rows[4] = 4 * n + i
+        rows[4], rows[5] = 4 * n + 2 * i, 4 * n + 2 * i + 1
         s2 = 0.0
         for a in range(nrow):
             s2 += e[rows[a]] ** 2
@@ -249,8 +270,8 @@ def _robust_rows(e, J, n, lateral, kernel, k, want_j):
 
 @njit(cache=True)
 def _zero_rows(e, J, rows, lateral, want_j):
-    """Zero the residual rows (and Jacobian rows) of one contact; the lateral row only if present."""
-    for a in range(5 if lateral else 4):
+    """Zero the residual rows (and Jacobian rows) of one contact; the lateral rows only if present."""
+    for a in range(6 if lateral else 4):
         e[rows[a]] = 0.0
         if want_j:
             for c6 in range(6):
@@ -288,7 +309,13 @@ def kernel_params(tolerance, robust="none", point_to_facet=True):
 
 def factor_dim(n, point_to_facet):
     """Rows of the batched contact factor of n contacts."""
-    return n * (5 if point_to_facet else 4)
+    return n * (6 if point_to_facet else 4)
+
+
+def lateral_norms(e, n):
+    """r_l / σ_x of each contact (its two lateral rows' norm) from the error e (6n,) of a
+    factor with point-to-facet rows and no robust kernel. -> (n,)"""
+    return np.hypot(e[4 * n::2], e[4 * n + 1::2])
 
 
 def contact_residuals(T, data, params, jacobian=True):

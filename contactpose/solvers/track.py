@@ -16,10 +16,10 @@ Touches of an object that has not moved share one variable.
 A touch after a hand motion adds one variable and two factors, and ``gtsam.ISAM2`` (Dogleg
 steps, every change back-substituted) updates the smoothed trajectory incrementally;
 :meth:`PoseTrack.relinearize` iterates it to convergence, and :meth:`PoseTrack.batch` solves
-the same graph by Levenberg–Marquardt from the same initial values, the reference. Without the
-point-to-facet term the two agree to 1e-9; with it, whose residual has a kink where a contact
-crosses its triangle's edge, the trust-region steps can stop short, measured within 2e-6 of
-the batch χ² and 6e-6 of its poses (tests/solvers/test_track.py).
+the same graph by Levenberg–Marquardt from the same initial values, the reference. The two
+agree to 1e-6 and better, with the point-to-facet rows too: those are the in-plane vector
+from the contact's triangle (factor_graph._lateral_rows), whose Gauss–Newton model iSAM2's
+Dogleg steps can trust (tests/solvers/test_track.py; research/tracking.md).
 """
 
 from __future__ import annotations

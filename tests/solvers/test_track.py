@@ -93,36 +93,40 @@ def test_single_contact_touches(rock_model):
         assert np.median(errors) < median_deg and max(errors) < max_deg
 
 
+def _assert_isam2_is_batch(model, track, atol=1e-6):
+    """The relinearised iSAM2 trajectory equals LM on the whole graph from the same initial
+    values (rotation entries; translation in diameters), and neither has the lower χ²."""
+    poses, batch = track.relinearize(), track.batch()
+    assert np.abs(poses[:, :3, :3] - batch[:, :3, :3]).max() < atol
+    assert np.abs(poses[:, :3, 3] - batch[:, :3, 3]).max() < atol * model.diameter
+    assert track.cost(poses) == pytest.approx(track.cost(batch), rel=1e-9)
+    return poses
+
+
+@pytest.mark.parametrize("point_to_facet", [False, True])
 @pytest.mark.parametrize("seed", range(8))
-def test_isam2_equals_batch_lm_on_the_same_graph(rock_model, seed):
-    """Noisy contacts and slip, contact factors without the point-to-facet term (a smooth
-    cost): once relinearised, the iSAM2 trajectory equals Levenberg–Marquardt on the whole
-    graph from the same initial values to 1e-6 (rotation entries, translation in diameters)."""
+def test_isam2_equals_batch_lm_on_the_same_graph(rock_model, seed, point_to_facet):
+    """Noisy contacts and slip, with and without the point-to-facet term: once relinearised,
+    the iSAM2 trajectory equals Levenberg–Marquardt on the whole graph to 1e-6. The lateral
+    rows are the in-plane vector w, whose Gauss-Newton model is exact in p; with the scalar
+    r_l, iSAM2's Dogleg stopped short by up to 2e-5 here (research/tracking.md)."""
     rock = rock_model
     rng = np.random.default_rng(100 + seed)
     truth, touches = _sequence(rock, rng, 15, noise=1.0, slip=1.0)
-    track = _track(rock, touches, truth[0], _tolerance(rock), point_to_facet=False)
-    poses, batch = track.relinearize(), track.batch()
-    assert np.abs(poses[:, :3, :3] - batch[:, :3, :3]).max() < 1e-6
-    assert np.abs(poses[:, :3, 3] - batch[:, :3, 3]).max() < 1e-6 * rock.diameter
+    track = _track(rock, touches, truth[0], _tolerance(rock), point_to_facet=point_to_facet)
+    poses = _assert_isam2_is_batch(rock, track)
     assert np.median([np.degrees(Rotation.from_matrix(a[:3, :3].T @ b[:3, :3]).magnitude())
                       for a, b in zip(poses, truth)]) < 2.0
 
 
-@pytest.mark.parametrize("seed", range(4))
-def test_isam2_with_point_to_facet_nears_the_batch_optimum(rock_model, seed):
-    """With the point-to-facet term, whose residual has a kink at a triangle's edge, iSAM2's
-    trust-region steps can stop short of the batch optimum: the cost is within 1e-5 of it and
-    the poses within 1e-4 (measured: 2e-6 and 6e-6 at worst over 8 sequences)."""
-    rock = rock_model
-    rng = np.random.default_rng(100 + seed)
-    truth, touches = _sequence(rock, rng, 15, noise=1.0, slip=1.0)
-    track = _track(rock, touches, truth[0], _tolerance(rock))
-    poses, batch = track.relinearize(), track.batch()
-    assert track.cost(poses) - track.cost(batch) < 1e-5
-    assert track.cost(batch) <= track.cost(poses) + 1e-9
-    assert np.abs(poses[:, :3, :3] - batch[:, :3, :3]).max() < 1e-4
-    assert np.abs(poses[:, :3, 3] - batch[:, :3, 3]).max() < 1e-4 * rock.diameter
+@pytest.mark.parametrize("seed", [100, 103])
+def test_isam2_equals_batch_lm_on_a_fine_mesh(seed):
+    """The YCB banana (16,384 facets of ~1.7 mm, σ_x 0.5 mm): most contacts lie beside their
+    triangle, many beside a corner. 30 touches, point-to-facet on: iSAM2 = batch LM to 1e-6
+    (with the scalar r_l, iSAM2 stopped 4.4e-5 and 1.2e-4 short on these two sequences)."""
+    banana = ObjectModel.from_mesh(objects.load("ycb:011_banana"))
+    truth, touches = _sequence(banana, np.random.default_rng(seed), 30, noise=1.0, slip=1.0)
+    _assert_isam2_is_batch(banana, _track(banana, touches, truth[0], _tolerance(banana)))
 
 
 def test_static_touches_are_one_pose(rock_model):

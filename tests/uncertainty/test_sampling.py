@@ -92,7 +92,8 @@ def test_robust_kernel_bounds_the_penalty_of_a_far_contact(rock_model):
     # reference: GTSAM's mEstimator losses on each contact's whitened block norm s_i
     e, _ = fg.contact_residuals(g.pose, fg.pack_contacts(rock_model, bad, g.facets), fg.kernel_params(tol))
     n = bad.n
-    blocks = np.stack([e[3 * i:3 * i + 3].tolist() + [e[3 * n + i], e[4 * n + i]] for i in range(n)])
+    blocks = np.stack([e[3 * i:3 * i + 3].tolist() + [e[3 * n + i], e[4 * n + 2 * i], e[4 * n + 2 * i + 1]]
+                       for i in range(n)])
     s = np.linalg.norm(blocks, axis=1)
     assert s[0] > 35 and lik["none"] == pytest.approx(-0.5 * np.sum(s**2), rel=1e-12)
     huber = gtsam.noiseModel.mEstimator.Huber.Create(fg.HUBER_K)
