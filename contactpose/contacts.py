@@ -92,9 +92,16 @@ class Contacts:
         return -self.finger_normals
 
     def transformed(self, T):
-        """These contacts moved by the rigid transform T (4, 4)."""
+        """These contacts moved by the rigid transform T (4, 4). A rigid motion keeps the
+        spacing and the unit normals, so they are not checked again (trackers move every
+        touch's contacts at every step)."""
         R, t = T[:3, :3], T[:3, 3]
-        return Contacts(self.points @ R.T + t, finger_normals=self.finger_normals @ R.T)
+        moved = object.__new__(Contacts)
+        for name, value in (("points", self.points @ R.T + t), ("finger_normals", self.finger_normals @ R.T)):
+            value.flags.writeable = False
+            object.__setattr__(moved, name, value)
+        object.__setattr__(moved, "spread", self.spread)
+        return moved
 
     def joined(self, *others):
         """These contacts followed by those of ``others`` (Contacts), in order."""

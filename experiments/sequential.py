@@ -85,7 +85,7 @@ from contactpose.geometry.sampling import perturb_normals
 from contactpose.model.object_model import merged_mesh
 from contactpose.sim import fingertip, objects
 from contactpose.sim import grasps as simulate
-from contactpose.solvers.track import MAX_TRACKS, PoseTrack, TrackSet, checked_motion
+from contactpose.solvers.track import MAX_TRACKS, PoseTrack, TrackSet, add_touch, checked_motion
 
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "results" / "sequential"
@@ -362,8 +362,7 @@ def speed_sequence(model, rng, s, n_tracks):
     for delta, g in touches:
         clock = time.perf_counter()
         hand = checked_motion((delta, s["slip_deg"], s["slip_trans_frac"] * d))  # once per touch, as TrackSet.add
-        for t in tracks:
-            t._add(g.contacts, None, hand)
+        add_touch(tracks, g.contacts, hand)
         ms.append(1e3 * (time.perf_counter() - clock))
     return ms
 

@@ -134,6 +134,21 @@ class PoseTrack:
 
     def _add(self, contacts, facets, motion):
         """:meth:`add` with the hand motion checked: None or (ΔT (4, 4), slip noise model)."""
+        if facets is None:
+            add_touch([self], contacts, motion)
+        else:
+            self._step(contacts, facets, motion, score=True)
+        return self.pose
+
+    def _predicted(self, motion):
+        """(4, 4) T_world_object predicted for the next touch: ΔT times the last smoothed pose
+        (no slip), or the last pose when the object has not moved."""
+        hand = self.hand[-1] if motion is None else motion[0] @ self.hand[-1]
+        return hand @ self._last.matrix()
+
+    def _step(self, contacts, facets, motion, score):
+        """The touch's contact factor on its facets, after a new pose variable and its slip
+        factor when the hand moved: one iSAM2 update."""
         factors, values, hand = gtsam.NonlinearFactorGraph(), gtsam.Values(), None
         if motion is not None:
             delta, noise = motion
@@ -141,23 +156,7 @@ class PoseTrack:
             k = len(self.hand)
             factors.add(gtsam.BetweenFactorPose3(k - 1, k, gtsam.Pose3(), noise))
             values.insert(k, self._last)  # Y_k predicted: no slip
-        associated = facets is None
-        if associated:
-            facets = self.associate(contacts, hand)
-        self._update(factors, values, contacts, facets, hand, score=not associated)
-        if associated:
-            self._reassociate(contacts)
-            self.score += self._last_chi2()
-        return self.pose
-
-    def _reassociate(self, contacts):
-        """The last touch's contacts take their best-fitting facets under the updated pose, and
-        its factor is swapped, until they hold (at most REASSOCIATE times)."""
-        for _ in range(REASSOCIATE):
-            again = self.associate(contacts)
-            if np.array_equal(again, self.touches[-1][2]):
-                break
-            self._swap(again)
+        self._update(factors, values, contacts, facets, hand, score=score)
 
     def _factors(self, local, facets, k):
         """The contact factor of a touch (contacts ``local`` in the hand frame) on pose k, and its
@@ -235,11 +234,9 @@ class PoseTrack:
         if score:
             self.score += self._last_chi2()
 
-    def associate(self, contacts, hand=None):
-        """Each contact's best-fitting facet under the predicted pose: the hand pose (``hand``,
-        default the last) times the last smoothed Y. -> (n,) int"""
-        predicted = (self.hand[-1] if hand is None else hand) @ self._y(len(self.hand) - 1)
-        return fg.nearest_fit_facets(self.model, contacts, predicted, self.tolerance)
+    def associate(self, contacts):
+        """Each contact's best-fitting facet under the current smoothed pose. -> (n,) int"""
+        return fg.nearest_fit_facets(self.model, contacts, self.pose, self.tolerance)
 
     def _y(self, k):
         return (self._last if k == len(self.hand) - 1 else self._estimate.atPose3(k)).matrix()
@@ -340,8 +337,7 @@ class TrackSet:
         """One more touch for every track (facets associated per track). -> the best pose (4, 4)"""
         _check_contacts(contacts)
         motion = checked_motion(hand_motion)
-        for t in self.tracks:
-            t._add(contacts, None, motion)
+        add_touch(self.tracks, contacts, motion)
         self._prune()
         return self.best.pose
 
@@ -362,3 +358,31 @@ class TrackSet:
             if not same[i, kept].any():  # merged into a better track with the same pose
                 kept.append(i)
         self.tracks = [self.tracks[i] for i in kept]
+
+
+def add_touch(tracks, contacts, motion):
+    """One touch for several tracks of one model, its facets associated per track: each
+    contact takes its best-fitting facet under each track's predicted pose (one search for all
+    tracks: factor_graph.nearest_fit_facets), each track takes one iSAM2 update, and then,
+    while a track's facets change under its updated pose (at most REASSOCIATE times), its
+    touch's factor is swapped. Each track's score grows by the touch's χ² at the end.
+
+    tracks : [PoseTrack] sharing one model and tolerance; contacts : Contacts (world frame);
+    motion : None or (ΔT (4, 4), slip noise model), as from :func:`checked_motion`."""
+    model, tolerance = tracks[0].model, tracks[0].tolerance
+    if any(t.model is not model or t.tolerance != tolerance for t in tracks):
+        raise ContactPoseError("tracks touched together must share one model and one tolerance")
+    facets = fg.nearest_fit_facets(model, contacts, np.stack([t._predicted(motion) for t in tracks]), tolerance)
+    for t, f in zip(tracks, facets):
+        t._step(contacts, f, motion, score=False)
+    pending = list(tracks)
+    for _ in range(REASSOCIATE):
+        again = fg.nearest_fit_facets(model, contacts, np.stack([t.pose for t in pending]), tolerance)
+        changed = [(t, f) for t, f in zip(pending, again) if not np.array_equal(f, t.touches[-1][2])]
+        for t, f in changed:
+            t._swap(f)
+        pending = [t for t, _ in changed]
+        if not pending:
+            break
+    for t in tracks:
+        t.score += t._last_chi2()

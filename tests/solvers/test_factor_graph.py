@@ -673,7 +673,8 @@ def test_prior_makes_an_underdetermined_grasp_determined(box):
 def test_nearest_fit_facets_is_the_brute_force_minimum(name):
     """Each contact's best-fitting facet, the centroid tree's bounded search (16,384 facets) and
     the direct one (320), against the whitened cost over every valid facet; poses off by up to
-    5 % of the diameter, noise up to 1 % and 5 degrees."""
+    5 % of the diameter, noise up to 1 % and 5 degrees. One pose at a time, and 4 poses (the
+    truth and 3 others) searched together."""
     from contactpose.geometry.kernels import point_triangle_distance
     from contactpose.model.object_model import ObjectModel
     from contactpose.sim import objects
@@ -682,15 +683,22 @@ def test_nearest_fit_facets_is_the_brute_force_minimum(name):
     d, rng = model.diameter, np.random.default_rng(21)
     tol = Tolerance.from_noise(0.0025 * d, 1.0)
     valid = np.flatnonzero(model.planes.valid)
-    for _ in range(60):
+
+    def brute_force(contacts, T):
+        p = (contacts.points - T[:3, 3]) @ T[:3, :3]
+        dist = point_triangle_distance(np.repeat(p, len(valid), 0), np.tile(model.triangles[valid], (contacts.n, 1, 1)))
+        r_n = model.planes.normals[valid] @ T[:3, :3].T + contacts.finger_normals[:, None]
+        cost = dist.reshape(contacts.n, -1) ** 2 / tol.position_noise**2 + np.sum(r_n**2, axis=2) / tol.normal_noise**2
+        return valid[np.argmin(cost, axis=1)]
+
+    for _ in range(30):
         g = simulate.grasp(model, rng, n=3, position_noise=0.01 * d * rng.random(), normal_noise_deg=5 * rng.random())
-        T = g.pose.copy()
-        T[:3, 3] += 0.05 * d * rng.random() * rng.normal(size=3)
-        p = (g.contacts.points - T[:3, 3]) @ T[:3, :3]
-        dist = point_triangle_distance(np.repeat(p, len(valid), 0), np.tile(model.triangles[valid], (3, 1, 1)))
-        r_n = model.planes.normals[valid] @ T[:3, :3].T + g.contacts.finger_normals[:, None]
-        cost = dist.reshape(3, -1) ** 2 / tol.position_noise**2 + np.sum(r_n**2, axis=2) / tol.normal_noise**2
-        np.testing.assert_array_equal(fg.nearest_fit_facets(model, g.contacts, T, tol), valid[np.argmin(cost, axis=1)])
+        poses = np.stack([g.pose] * 4)
+        poses[:, :3, 3] += 0.05 * d * rng.random((4, 1)) * rng.normal(size=(4, 3))
+        poses[1:, :3, :3] = Rotation.from_rotvec(np.radians(3.0) * rng.normal(size=(3, 3))).as_matrix() @ g.pose[:3, :3]
+        truth = np.stack([brute_force(g.contacts, T) for T in poses])
+        np.testing.assert_array_equal(fg.nearest_fit_facets(model, g.contacts, poses[0], tol), truth[0])
+        np.testing.assert_array_equal(fg.nearest_fit_facets(model, g.contacts, poses, tol), truth)
 
 
 @functools.lru_cache(maxsize=2)

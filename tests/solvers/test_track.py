@@ -13,7 +13,7 @@ from contactpose.model.object_model import ObjectModel
 from contactpose.sim import grasps as simulate
 from contactpose.sim import objects
 from contactpose.solvers import factor_graph as fg
-from contactpose.solvers.track import PoseTrack, TrackSet
+from contactpose.solvers.track import PoseTrack, TrackSet, add_touch, checked_motion
 from contactpose.types import PosePrior
 
 
@@ -218,6 +218,31 @@ def test_associated_touches_are_a_fixed_point_and_isam2_still_equals_batch(rock_
         fixed += np.array_equal(track.associate(contacts), track.touches[-1][2])
     assert fixed >= 11
     np.testing.assert_allclose(track.relinearize(), track.batch(), atol=1e-9)
+
+
+def test_tracks_touched_together_equal_tracks_touched_alone(rock_model):
+    """add_touch over several tracks (one facet search for all) leaves each track where
+    touching it alone does: the same facets at every touch, poses to 1e-12, the same score."""
+    rock = rock_model
+    rng = np.random.default_rng(41)
+    truth, touches = _sequence(rock, rng, 8, noise=1.0, slip=1.0)
+    tol = _tolerance(rock)
+    first, facets, _ = touches[0]
+    starts = [truth[0] @ _motion(rng, 2.0, 0.01 * rock.diameter) for _ in range(4)]
+    together = [PoseTrack(rock, first, facets, s, tol) for s in starts]
+    alone = [PoseTrack(rock, first, facets, s, tol) for s in starts]
+    for contacts, _, motion in touches[1:]:
+        add_touch(together, contacts, checked_motion(motion))
+        for t in alone:
+            t.add(contacts, hand_motion=motion)
+    for a, b in zip(together, alone):
+        for (_, _, fa), (_, _, fb) in zip(a.touches, b.touches):
+            np.testing.assert_array_equal(fa, fb)
+        np.testing.assert_allclose(a.poses, b.poses, atol=1e-12)
+        assert a.score == pytest.approx(b.score, rel=1e-12)
+    other = PoseTrack(rock, first, facets, starts[0], Tolerance.from_noise(0.005 * rock.diameter, 2.0))
+    with pytest.raises(ContactPoseError, match="share one model and one tolerance"):
+        add_touch([together[0], other], contacts, None)
 
 
 def test_surface_contact_model_follows_fingertip_contacts_on_edges(rock_model):
