@@ -260,7 +260,7 @@ class PoseTrack:
         curvature (factor_graph._optimize): the marginal of :attr:`spread`, or iSAM2's own
         where that leaves directions free. It holds each touch's facets fixed. Where facets are
         smaller than the slip moves a contact, the association is uncertain and the region is
-        too small: its 95 % region held the truth in 54.5 % of YCB banana sequences, against
+        too small: its 95 % region held the truth in 50.5 % of YCB banana sequences, against
         87–90.5 % on the rock (research/tracking.md, "Covariance of a track on a fine mesh")."""
         k = len(self.hand) - 1
         try:
