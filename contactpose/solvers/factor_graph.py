@@ -211,33 +211,37 @@ def _lateral_rows(e, J, row, nk, p, datum, inv_sx, tiny, want_j):
     beside a corner (w = p - corner, in-plane) and P = u uᵀ beside an edge (u = w/|w|).
     The scalar r_l of the same cost bends around each corner (its Hessian holds (I - u uᵀ)/r_l),
     which Gauss-Newton leaves out; that stalled iSAM2's trust region on fine meshes."""
-    a, b, c3 = datum[4:7], datum[7:10], datum[10:13]
-    q = np.array(p)
-    c = closest_point_triangle(q, a, b, c3)
-    w = q - c
-    w -= (nk[0] * w[0] + nk[1] * w[1] + nk[2] * w[2]) * nk
-    rl = np.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2])
-    e1 = b - a
-    e1 /= np.sqrt(e1[0] * e1[0] + e1[1] * e1[1] + e1[2] * e1[2])
-    e2 = np.array((nk[1] * e1[2] - nk[2] * e1[1], nk[2] * e1[0] - nk[0] * e1[2], nk[0] * e1[1] - nk[1] * e1[0]))
+    p0, p1, p2 = p
+    c = closest_point_triangle(np.array((p0, p1, p2)), datum[4:7], datum[7:10], datum[10:13])
+    w0, w1, w2 = p0 - c[0], p1 - c[1], p2 - c[2]
+    h = nk[0] * w0 + nk[1] * w1 + nk[2] * w2
+    w0, w1, w2 = w0 - h * nk[0], w1 - h * nk[1], w2 - h * nk[2]
+    rl = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+    f0, f1, f2 = datum[7] - datum[4], datum[8] - datum[5], datum[9] - datum[6]  # e_1: the first edge
+    size = np.sqrt(f0 * f0 + f1 * f1 + f2 * f2)
+    f0, f1, f2 = f0 / size, f1 / size, f2 / size
+    g0, g1, g2 = nk[1] * f2 - nk[2] * f1, nk[2] * f0 - nk[0] * f2, nk[0] * f1 - nk[1] * f0  # e_2 = n_k × e_1
     outside = rl > tiny
-    for j, ej in enumerate((e1, e2)):
-        e[row + j] = (ej[0] * w[0] + ej[1] * w[1] + ej[2] * w[2]) * inv_sx if outside else 0.0
+    corner = False
+    for s in range(3):  # c is a corner itself (a vertex region), else a point of an edge
+        corner = corner or (c[0] == datum[4 + 3 * s] and c[1] == datum[5 + 3 * s] and c[2] == datum[6 + 3 * s])
+    for j in range(2):
+        x, y, z = (f0, f1, f2) if j == 0 else (g0, g1, g2)
+        along = x * w0 + y * w1 + z * w2
+        e[row + j] = along * inv_sx if outside else 0.0
         if not want_j:
             continue
-        for c6 in range(6):
-            J[row + j, c6] = 0.0
+        if outside and not corner:  # v = (e_j·u) u
+            x, y, z = along / (rl * rl) * w0, along / (rl * rl) * w1, along / (rl * rl) * w2
         if not outside:
-            continue
-        corner = (c == a).all() or (c == b).all() or (c == c3).all()
-        # the row e_jᵀ P [[p]×, -I]: [(v × p)ᵀ, -vᵀ] with v = e_j (corner) or (e_j·u) u (edge)
-        v = ej.copy() if corner else (ej[0] * w[0] + ej[1] * w[1] + ej[2] * w[2]) / (rl * rl) * w
-        J[row + j, 0] = (v[1] * p[2] - v[2] * p[1]) * inv_sx
-        J[row + j, 1] = (v[2] * p[0] - v[0] * p[2]) * inv_sx
-        J[row + j, 2] = (v[0] * p[1] - v[1] * p[0]) * inv_sx
-        J[row + j, 3] = -v[0] * inv_sx
-        J[row + j, 4] = -v[1] * inv_sx
-        J[row + j, 5] = -v[2] * inv_sx
+            x = y = z = 0.0
+        # the row e_jᵀ P [[p]×, -I] = [(v × p)ᵀ, -vᵀ], v = e_j beside a corner, (e_j·u) u beside an edge
+        J[row + j, 0] = (y * p2 - z * p1) * inv_sx
+        J[row + j, 1] = (z * p0 - x * p2) * inv_sx
+        J[row + j, 2] = (x * p1 - y * p0) * inv_sx
+        J[row + j, 3] = -x * inv_sx
+        J[row + j, 4] = -y * inv_sx
+        J[row + j, 5] = -z * inv_sx
 
 
 @njit(cache=True)
