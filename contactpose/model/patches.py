@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from contactpose.geometry.kernels import _d2, _t, _triangle_triangle_d2, point_triangle_dist2
+from contactpose.geometry.kernels import _d2, _t, _triangle_triangle_d2, normal_misfit, point_triangle_dist2
 from contactpose.io.modelfile import STORED_PATCHES, check_arrays, check_pointers
 from contactpose.model.features import NearPairs, PairFeatures, round_down32, round_up32
 from contactpose.progress import progress_bar
@@ -296,10 +296,7 @@ def _nearest(grp_ptr, grp_mem, members, grp_centre, grp_radius, triangles, tuple
                         continue
                 for e in range(grp_mem[g], grp_mem[g + 1]):
                     f = members[e]
-                    d = 0.0
-                    if weight > 0.0:
-                        for a in range(3):
-                            d += weight * (facet_normals[f, a] - obj_normals[h, i, a]) ** 2
+                    d = normal_misfit(facet_normals[f], obj_normals[h, i], weight) if weight > 0.0 else 0.0
                     if prune:
                         gap = np.sqrt(_d2(x, _t(centres[f]))) - radii[f]
                         if gap > 0.0 and d + gap * gap >= best:

@@ -81,7 +81,7 @@ from __future__ import annotations
 import logging
 import time
 from dataclasses import dataclass
-from functools import partial
+from functools import lru_cache, partial
 
 import gtsam
 import numpy as np
@@ -90,7 +90,7 @@ from scipy.spatial.transform import Rotation
 
 from contactpose.contacts import Contacts
 from contactpose.errors import ContactPoseError, check_count
-from contactpose.geometry.kernels import closest_point_triangle, point_triangle_distance
+from contactpose.geometry.kernels import closest_point_triangle, fit_cost
 from contactpose.solvers import residuals as res
 from contactpose.solvers.closed_form import wahba
 from contactpose.types import DEFAULT_REFINE, ROBUST, HypothesisArrays, PosePrior, fit_threshold, outlier_penalty
@@ -352,14 +352,43 @@ def contact_error(data, params, e, J, key, this, values, H):
 _NO_JACOBIAN = np.empty((0, 6))
 
 
-def contact_factor(data, params, key=POSE_KEY):
+def contact_factor(data, params, key=POSE_KEY, noise=None):
     """The batched contact factor of one hypothesis: a gtsam.CustomFactor on ``key``.
 
-    data : (n, 20) from :func:`pack_contacts`; params : from :func:`kernel_params`.
+    data : (n, 20) from :func:`pack_contacts`; params : from :func:`kernel_params`; noise :
+    the factor's noise model on its whitened rows (default: unit).
     """
     m = factor_dim(len(data), params[4] != 0.0)
     fn = partial(contact_error, data, params, np.empty(m), np.empty((m, 6)), key)
-    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(m), [key], fn)
+    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(m) if noise is None else noise, [key], fn)
+
+
+@lru_cache(maxsize=None)
+def reweighted_noise(dim, robust):
+    """GTSAM's own robust noise model on ``dim`` unit-whitened rows: the same ρ as the batched
+    factor's kernel (:func:`robust_rho`), applied by reweighting (each linearization scales the
+    rows by √w, w = ρ'(s)/s). robust : "huber" | "cauchy" | "none" (unit noise)."""
+    unit = gtsam.noiseModel.Unit.Create(dim)
+    if robust not in ROBUST:
+        raise ContactPoseError(f"robust must be one of {ROBUST}, got {robust!r}")
+    if robust == "none":
+        return unit
+    kernel = {"huber": gtsam.noiseModel.mEstimator.Huber, "cauchy": gtsam.noiseModel.mEstimator.Cauchy}[robust]
+    return gtsam.noiseModel.Robust.Create(kernel.Create(HUBER_K if robust == "huber" else CAUCHY_K), unit)
+
+
+def reweighted_contact_factors(data, tolerance, robust, point_to_facet, key=POSE_KEY):
+    """The contact factor split into one gtsam.CustomFactor per contact, each with the kernel
+    as GTSAM's reweighting (:func:`reweighted_noise`) instead of the batched factor's square
+    root. The cost is the same, contact by contact; the linearization differs. The square
+    root's Jacobian holds the kernel's exact slope, and a full Gauss–Newton step on it
+    overshoots a contact in the kernel's linear part about twofold: iSAM2's Gauss–Newton
+    steps then cycle. Reweighting is the iteratively reweighted least squares step, which
+    does not (research/tracking.md, "Gauss–Newton steps"). data : (n, 20) from
+    :func:`pack_contacts`. -> [gtsam.CustomFactor] (n)"""
+    params = kernel_params(tolerance, "none", point_to_facet)
+    noise = reweighted_noise(factor_dim(1, point_to_facet), robust)
+    return [contact_factor(np.ascontiguousarray(data[i:i + 1]), params, key, noise) for i in range(len(data))]
 
 
 def smooth_contact_factor(model, contacts, facets, tolerance, key=POSE_KEY, point_to_facet=True, robust="huber"):
@@ -772,30 +801,30 @@ def nearest_fit_facets(model, contacts, pose, tolerance):
     plus normal residual². pose : (4, 4) -> (n,) int, or (H, 4, 4) -> (H, n) int, the poses
     searched together in one pass (valid facets only).
 
-    The NEAREST_CANDIDATES facets of nearest centroid are scored first; a facet not among them
-    lies at least (its centroid's distance - the largest facet radius) from the contact, so
-    when that exceeds what the best candidate costs in distance alone, none can beat it, and
-    otherwise the contact is scored against every facet: the answer is exact either way."""
+    The NEAREST_CANDIDATES facets of nearest centroid are scored first. A facet lies at least
+    (its centroid's distance - the largest facet radius) from the contact, so one whose centroid
+    lies farther than the best candidate's cost, as a distance, plus that radius cannot beat
+    it; where the candidates do not reach that far, the contact is scored against every facet
+    within it. The answer is the brute force's either way."""
     poses = np.asarray(pose, dtype=np.float64)
     single = poses.ndim == 2
     poses = poses.reshape(-1, 4, 4)
     H, n = len(poses), contacts.n
     tree, valid, radius = model.centroid_tree
-    R = np.repeat(poses[:, :3, :3], n, axis=0)  # one rotation per (pose, contact) row
-    p = ((np.tile(contacts.points, (H, 1)) - np.repeat(poses[:, :3, 3], n, axis=0))[:, None] @ R)[:, 0]
-    normals = np.tile(contacts.finger_normals, (H, 1))
+    R = poses[:, :3, :3]  # object-frame points and outward normals, (H·n, 3), pose by pose
+    p = np.einsum("hij,hci->hcj", R, contacts.points[None] - poses[:, None, :3, 3]).reshape(-1, 3)
+    normals = -np.einsum("hij,ci->hcj", R, contacts.finger_normals).reshape(-1, 3)
+    weight = (tolerance.position_noise / tolerance.normal_noise) ** 2
     if len(valid) <= 8 * NEAREST_CANDIDATES:  # a coarse mesh: score every facet
         every = np.broadcast_to(valid, (H * n, len(valid)))
-        best = valid[np.argmin(_fit_cost(model, p, R, normals, every, tolerance), axis=1)]
+        best, _ = _best_fits(p, normals, every, model.triangles, model.planes.normals, weight)
     else:
         dist, near = tree.query(p, NEAREST_CANDIDATES)
-        cost = _fit_cost(model, p, R, normals, valid[near], tolerance)
-        best = valid[near[np.arange(H * n), np.argmin(cost, axis=1)]]
-        unsure = np.flatnonzero(dist[:, -1] - radius < np.sqrt(cost.min(axis=1)) * tolerance.position_noise)
-        if len(unsure):
-            every = np.broadcast_to(valid, (len(unsure), len(valid)))
-            best[unsure] = valid[np.argmin(_fit_cost(model, p[unsure], R[unsure], normals[unsure], every, tolerance),
-                                           axis=1)]
+        best, cost = _best_fits(p, normals, valid[near], model.triangles, model.planes.normals, weight)
+        reach = np.sqrt(cost) + radius  # a facet whose centroid lies farther costs more
+        for i in np.flatnonzero(dist[:, -1] < reach):
+            ball = valid[np.asarray(tree.query_ball_point(p[i], reach[i]), dtype=np.int64)][None]
+            best[i] = _best_fits(p[i:i + 1], normals[i:i + 1], ball, model.triangles, model.planes.normals, weight)[0][0]
     return best.reshape(n) if single else best.reshape(H, n)
 
 
@@ -803,13 +832,22 @@ def nearest_fit_facets(model, contacts, pose, tolerance):
 NEAREST_CANDIDATES = 128
 
 
-def _fit_cost(model, p, R, finger_normals, facets, tolerance):
-    """Whitened cost of contacts (object-frame points p (m, 3), finger normals (m, 3), each under
-    its rotation R (m, 3, 3)) on facets (m, K): distance²/σ_x² + |R ν_f + ñ|²/σ_n². -> (m, K)"""
-    m, K = facets.shape
-    dist = point_triangle_distance(np.repeat(p, K, axis=0), model.triangles[facets.ravel()]).reshape(m, K)
-    r_n = model.planes.normals[facets] @ R.transpose(0, 2, 1) + finger_normals[:, None]
-    return dist**2 / tolerance.position_noise**2 + np.sum(r_n**2, axis=2) / tolerance.normal_noise**2
+@njit(cache=True)
+def _best_fits(p, normals, candidates, triangles, facet_normals, weight):
+    """Each contact's candidate of least fit_cost (the first on a tie). p, normals : (m, 3)
+    object-frame points and outward normals; candidates : (m, K) int; weight : σ_x²/σ_n².
+    -> (facets (m,) int, their costs (m,), length²: the whitened cost times σ_x²)"""
+    m, K = candidates.shape
+    best, cost = np.empty(m, np.int64), np.empty(m)
+    for i in range(m):
+        least, pick = np.inf, -1
+        for j in range(K):
+            f = candidates[i, j]
+            c = fit_cost(p[i], normals[i], triangles[f], facet_normals[f], weight)
+            if c < least:
+                least, pick = c, f
+        best[i], cost[i] = pick, least
+    return best, cost
 
 
 def _empty(n, robust, prior):

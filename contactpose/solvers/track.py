@@ -13,13 +13,16 @@ H_k = ΔT_k ··· ΔT_1 (H_0 = I). Then Y_k = Y_{k-1} S_k exactly, which is GTS
 enter the batched contact factor of :mod:`contactpose.solvers.factor_graph` on Y_k unchanged.
 Touches of an object that has not moved share one variable.
 
-A touch after a hand motion adds one variable and two factors, and ``gtsam.ISAM2`` (Dogleg
-steps, every change back-substituted) updates the smoothed trajectory incrementally;
-:meth:`PoseTrack.relinearize` iterates it to convergence, and :meth:`PoseTrack.batch` solves
-the same graph by Levenberg–Marquardt from the same initial values, the reference. The two
-agree to 1e-6 and better, with the point-to-facet rows too: those are the in-plane vector
-from the contact's triangle (factor_graph._lateral_rows), whose Gauss–Newton model iSAM2's
-Dogleg steps can trust (tests/solvers/test_track.py; research/tracking.md).
+A touch after a hand motion adds one variable, its slip factor and one contact factor per
+contact, and ``gtsam.ISAM2`` (Gauss–Newton steps, every change back-substituted, a variable
+relinearized when it moved by more than TRACK_RELINEARIZE) updates the smoothed trajectory
+incrementally. The contact factors are factor_graph.reweighted_contact_factors: the kernel
+as GTSAM's reweighting, on whose steps Gauss–Newton converges, and the point-to-facet rows as
+the in-plane vector from the contact's triangle (factor_graph._lateral_rows), whose
+Gauss–Newton model holds. :meth:`PoseTrack.relinearize` iterates iSAM2 to convergence, and
+:meth:`PoseTrack.batch` solves the same graph by Levenberg–Marquardt from the same initial
+values, the reference. The two agree to 1e-6 and better (tests/solvers/test_track.py;
+research/tracking.md, "Gauss–Newton steps").
 """
 
 from __future__ import annotations
@@ -34,7 +37,10 @@ from contactpose.solvers import factor_graph as fg
 from contactpose.solvers.surface import surface_factor
 from contactpose.types import PosePrior, check_rigid
 
-#: iSAM2 relinearises every variable whose update exceeds this (tangent norm) at every update.
+#: A track's iSAM2 relinearizes, at every update, each variable that moved by more than this
+#: since its linearization (tangent norm: 0.57° in rotation; 10 mm when lengths are metres).
+TRACK_RELINEARIZE = 1e-2
+#: :meth:`PoseTrack.relinearize` converges with this threshold instead: the batch optimum.
 RELINEARIZE_THRESHOLD = 1e-8
 #: iSAM2 back-substitutes every change of the solution larger than this (0: every change).
 WILDFIRE_THRESHOLD = 0.0
@@ -99,22 +105,15 @@ class PoseTrack:
         if prior is not None and not isinstance(prior, PosePrior):
             raise ContactPoseError(f"prior must be a contactpose.PosePrior or None, got {type(prior).__name__}")
         self.model, self.tolerance = model, tolerance
-        self.params = fg.kernel_params(tolerance, robust, point_to_facet)
+        fg.reweighted_noise(1, robust)  # robust checked before the first touch's factors
         self.hand = [np.eye(4)]  # H_k
         self.graph = gtsam.NonlinearFactorGraph()  # every factor so far (the batch reference)
         self.spread = gtsam.NonlinearFactorGraph()  # the same without point-to-facet rows (covariance)
-        self.spread_params = fg.kernel_params(tolerance, robust, point_to_facet=False)
         self.initial = gtsam.Values()
         self.touches = []  # (pose variable k, Contacts in the world, facets (n,)) of every touch
-        self._slots = []  # per touch: its contact factor's index in iSAM2, in graph and in spread
+        self._slots = []  # per touch: its contact factors' indices in iSAM2, in graph and in spread
         self.score = 0.0  # Σ over touches of the touch's contact χ² just after its update
-        params = gtsam.ISAM2Params()
-        params.setRelinearizeThreshold(RELINEARIZE_THRESHOLD)
-        params.relinearizeSkip = 1
-        dogleg = gtsam.ISAM2DoglegParams()
-        dogleg.setWildfireThreshold(WILDFIRE_THRESHOLD)
-        params.setOptimizationParams(dogleg)
-        self.isam = gtsam.ISAM2(params)
+        self.isam = _isam2(trust_region=contact_model != "facets")
         factors, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         if prior is not None:
             factors.add(fg.prior_factor(prior, key=0))
@@ -159,28 +158,31 @@ class PoseTrack:
         self._update(factors, values, contacts, facets, hand, score=score)
 
     def _factors(self, local, facets, k):
-        """The contact factor of a touch (contacts ``local`` in the hand frame) on pose k, and its
-        twin for the spread graph (no point-to-facet rows)."""
+        """The contact factors of a touch (contacts ``local`` in the hand frame) on pose k, and
+        their twins for the spread graph (no point-to-facet rows): one per contact, the kernel
+        as reweighting ("facets"), or one batched factor ("smooth", "surface"). -> ([factor], [twin])"""
         if self.contact_model == "surface":
-            return (surface_factor(self.model, local, facets, self.tolerance, k),
-                    surface_factor(self.model, local, facets, self.tolerance, k))
+            return ([surface_factor(self.model, local, facets, self.tolerance, k)],
+                    [surface_factor(self.model, local, facets, self.tolerance, k)])
         if self.contact_model == "smooth":
-            return (fg.smooth_contact_factor(self.model, local, facets, self.tolerance, k, self.point_to_facet, self.robust),
-                    fg.smooth_contact_factor(self.model, local, facets, self.tolerance, k, False, self.robust))
+            return ([fg.smooth_contact_factor(self.model, local, facets, self.tolerance, k, self.point_to_facet, self.robust)],
+                    [fg.smooth_contact_factor(self.model, local, facets, self.tolerance, k, False, self.robust)])
         data = fg.pack_contacts(self.model, local, facets)
-        return fg.contact_factor(data, self.params, key=k), fg.contact_factor(data.copy(), self.spread_params, key=k)
+        return (fg.reweighted_contact_factors(data, self.tolerance, self.robust, self.point_to_facet, k),
+                fg.reweighted_contact_factors(data, self.tolerance, self.robust, False, k))
 
     def _swap(self, facets):
-        """The last touch's contact factor replaced by one on ``facets``: one iSAM2 update."""
+        """The last touch's contact factors replaced by those on ``facets``: one iSAM2 update."""
         k, contacts, _ = self.touches[-1]
-        factor, twin = self._factors(contacts.transformed(np.linalg.inv(self.hand[k])), facets, k)
-        slot, at_graph, at_spread = self._slots[-1]
-        self.graph.replace(at_graph, factor)
-        self.spread.replace(at_spread, twin)
+        factors, twins = self._factors(contacts.transformed(np.linalg.inv(self.hand[k])), facets, k)
+        slots, at_graph, at_spread = self._slots[-1]
         new = gtsam.NonlinearFactorGraph()
-        new.add(factor)
-        result = self.isam.update(new, gtsam.Values(), [slot])
-        self._slots[-1] = (result.getNewFactorsIndices()[0], at_graph, at_spread)
+        for factor, twin, i, j in zip(factors, twins, at_graph, at_spread):
+            self.graph.replace(i, factor)
+            self.spread.replace(j, twin)
+            new.add(factor)
+        result = self.isam.update(new, gtsam.Values(), slots)
+        self._slots[-1] = (list(result.getNewFactorsIndices()), at_graph, at_spread)
         self.touches[-1] = (k, contacts, facets)
         self._refresh()
 
@@ -197,10 +199,10 @@ class PoseTrack:
         return self._full
 
     def _last_chi2(self):
-        """χ² (2 · error) of the last touch's contact factor (on the last pose alone) at the estimate."""
+        """χ² (2 · error) of the last touch's contact factors (on the last pose alone) at the estimate."""
         at = gtsam.Values()
         at.insert(len(self.hand) - 1, self._last)
-        return 2.0 * self.graph.at(self._slots[-1][1]).error(at)
+        return 2.0 * sum(self.graph.at(i).error(at) for i in self._slots[-1][1])
 
     def _update(self, factors, values, contacts, facets, hand=None, score=True):
         """The contact factor of a touch on the last pose variable (a new one, at hand pose
@@ -215,21 +217,23 @@ class PoseTrack:
             self.hand.append(hand)
         k = len(self.hand) - 1
         self.touches.append((k, contacts, facets))
-        factor, twin = self._factors(contacts.transformed(np.linalg.inv(self.hand[k])), facets, k)
+        contact_factors, twins = self._factors(contacts.transformed(np.linalg.inv(self.hand[k])), facets, k)
         for i in range(factors.size()):
             self.spread.add(factors.at(i))
             self.graph.add(factors.at(i))
-        self.spread.add(twin)
-        factors.add(factor)
-        self.graph.add(factor)
+        for factor, twin in zip(contact_factors, twins):
+            self.spread.add(twin)
+            self.graph.add(factor)
+            factors.add(factor)
         self.initial.insert(values)
         try:
             result = self.isam.update(factors, values)
         except RuntimeError as err:  # indeterminant system: the touches so far leave directions free
             raise ContactPoseError(f"pose {k}: the contacts so far leave pose directions free; give a prior "
                                    f"or more contacts ({type(err).__name__})") from None
-        self._slots.append((result.getNewFactorsIndices()[factors.size() - 1], self.graph.size() - 1,
-                            self.spread.size() - 1))
+        n = len(contact_factors)
+        self._slots.append((list(result.getNewFactorsIndices())[-n:], list(range(self.graph.size() - n, self.graph.size())),
+                            list(range(self.spread.size() - n, self.spread.size()))))
         self._refresh()
         if score:
             self.score += self._last_chi2()
@@ -260,8 +264,8 @@ class PoseTrack:
         curvature (factor_graph._optimize): the marginal of :attr:`spread`, or iSAM2's own
         where that leaves directions free. It holds each touch's facets fixed. Where facets are
         smaller than the slip moves a contact, the association is uncertain and the region is
-        too small: its 95 % region held the truth in 50.5 % of YCB banana sequences, against
-        87–90.5 % on the rock (research/tracking.md, "Covariance of a track on a fine mesh")."""
+        too small: its 95 % region held the truth in 54 % of YCB banana sequences, against
+        88.5–93 % on the rock (research/tracking.md, "Covariance of a track on a fine mesh")."""
         k = len(self.hand) - 1
         try:
             return gtsam.Marginals(self.spread, self._estimate).marginalCovariance(k)
@@ -277,16 +281,28 @@ class PoseTrack:
         return moved[0].joined(*moved[1:]), np.concatenate([f for _, _, f in self.touches])
 
     def relinearize(self, max_updates=100, tol=1e-12):
-        """iSAM2 updates without new factors until no pose moves by more than ``tol`` (tangent
-        norm) or after ``max_updates``: the smoothed trajectory converged. -> poses"""
+        """The smoothed trajectory converged: an iSAM2 with Dogleg steps (a trust region;
+        Gauss–Newton steps can cycle where a contact's closest feature of its triangle changes)
+        takes the graph at the smoothed estimate and is updated without new factors until no
+        pose moves by more than ``tol`` (tangent norm) or after ``max_updates``, every update
+        relinearizing what moved by more than RELINEARIZE_THRESHOLD. The track goes on from
+        the converged trajectory. -> poses"""
+        converging = _isam2(trust_region=True)
+        converging.update(self.graph, self._estimate)
+        every = gtsam.ISAM2UpdateParams()
+        every.force_relinearize = True
+        estimate = converging.calculateEstimate()
         for _ in range(max_updates):
-            before = self._estimate
-            self.isam.update()
-            self._refresh()
-            moved = max(np.linalg.norm(before.atPose3(k).localCoordinates(self._estimate.atPose3(k)))
+            converging.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), every)
+            before, estimate = estimate, converging.calculateEstimate()
+            moved = max(np.linalg.norm(before.atPose3(k).localCoordinates(estimate.atPose3(k)))
                         for k in range(len(self.hand)))
             if moved <= tol:
                 break
+        self.isam = _isam2(trust_region=self.contact_model != "facets")
+        self.isam.update(self.graph, estimate)
+        self._slots = [(list(at_graph), at_graph, at_spread) for _, at_graph, at_spread in self._slots]
+        self._refresh()
         return self.poses
 
     def cost(self, poses):
@@ -300,6 +316,19 @@ class PoseTrack:
         """The same graph solved by LM from the same initial values. -> (K, 4, 4) T_world_object"""
         result = gtsam.LevenbergMarquardtOptimizer(self.graph, self.initial, fg.lm_params(**BATCH)).optimize()
         return np.stack([h @ result.atPose3(k).matrix() for k, h in enumerate(self.hand)])
+
+
+def _isam2(trust_region):
+    """A gtsam.ISAM2 that back-substitutes every change and checks for relinearization at
+    every update: Dogleg steps and the threshold RELINEARIZE_THRESHOLD (``trust_region``), or
+    Gauss–Newton steps and TRACK_RELINEARIZE."""
+    params = gtsam.ISAM2Params()
+    params.setRelinearizeThreshold(RELINEARIZE_THRESHOLD if trust_region else TRACK_RELINEARIZE)
+    params.relinearizeSkip = 1
+    steps = gtsam.ISAM2DoglegParams() if trust_region else gtsam.ISAM2GaussNewtonParams()
+    steps.setWildfireThreshold(WILDFIRE_THRESHOLD)
+    params.setOptimizationParams(steps)
+    return gtsam.ISAM2(params)
 
 
 class TrackSet:

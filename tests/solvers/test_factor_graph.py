@@ -8,7 +8,6 @@ Gauss-Newton Hessian.
 
 import functools
 import re
-from functools import partial
 
 import gtsam
 import numpy as np
@@ -185,27 +184,62 @@ def test_robust_block_loss_is_gtsam_mestimator(rock, robust, estimator):
 
 @pytest.mark.parametrize("robust", ["huber", "cauchy"])
 def test_batched_robust_equals_per_contact_gtsam_robust(rock, robust):
-    """One batched factor with the in-factor kernel = n factors with noiseModel.Robust."""
+    """One batched factor with the in-factor kernel = n factors with noiseModel.Robust
+    (reweighted_contact_factors): the same cost and the same LM optimum."""
     rng = np.random.default_rng(8)
     tol = _tolerance(rock)
     contacts, facets, T_true, pose = _mixed_contacts(rock, rng, n_in=4, n_out=1)
-    k = fg.kernel_params(tol, robust)[2]
-    est = {"huber": gtsam.noiseModel.mEstimator.Huber, "cauchy": gtsam.noiseModel.mEstimator.Cauchy}[robust]
-    batched = gtsam.NonlinearFactorGraph()
-    batched.add(fg.contact_factor(fg.pack_contacts(rock, contacts, facets), fg.kernel_params(tol, robust)))
-    single = gtsam.NonlinearFactorGraph()
-    noise = gtsam.noiseModel.Robust.Create(est.Create(k), gtsam.noiseModel.Unit.Create(6))
     packed = fg.pack_contacts(rock, contacts, facets)
-    for i in range(len(facets)):
-        data = packed[i:i + 1]
-        single.add(gtsam.CustomFactor(noise, [fg.POSE_KEY], partial(
-            fg.contact_error, data, fg.kernel_params(tol, "none"), np.empty(6), np.empty((6, 6)), fg.POSE_KEY)))
+    batched = gtsam.NonlinearFactorGraph()
+    batched.add(fg.contact_factor(packed, fg.kernel_params(tol, robust)))
+    single = gtsam.NonlinearFactorGraph()
+    for factor in fg.reweighted_contact_factors(packed, tol, robust, point_to_facet=True):
+        single.add(factor)
+    assert single.size() == len(facets)
     values = gtsam.Values()
     values.insert(fg.POSE_KEY, pose)
     assert batched.error(values) == pytest.approx(single.error(values), rel=1e-12)
     a = gtsam.LevenbergMarquardtOptimizer(batched, values, _tight_params()).optimize().atPose3(fg.POSE_KEY)
     b = gtsam.LevenbergMarquardtOptimizer(single, values, _tight_params()).optimize().atPose3(fg.POSE_KEY)
     assert np.abs(a.localCoordinates(b)).max() < 1e-6
+
+
+@pytest.mark.parametrize("robust", KERNELS)
+def test_reweighted_linearization_has_the_cost_gradient(rock, robust):
+    """The reweighted factors' linear system (A, b) has the gradient of their cost, -Aᵀb = ∇E,
+    by central differences on the Pose3 retraction, with contacts in the kernel's linear part;
+    its Gauss–Newton Hessian is the IRLS one, AᵀA = Σ w_i J_iᵀJ_i, w = ρ'(s)/s."""
+    rng = np.random.default_rng(11)
+    tol = _tolerance(rock)
+    contacts, facets, _, pose = _mixed_contacts(rock, rng)
+    packed = fg.pack_contacts(rock, contacts, facets)
+    graph = gtsam.NonlinearFactorGraph()
+    for factor in fg.reweighted_contact_factors(packed, tol, robust, point_to_facet=True):
+        graph.add(factor)
+    values = gtsam.Values()
+    values.insert(fg.POSE_KEY, pose)
+    A, b = graph.linearize(values).jacobian()
+
+    def cost(xi):
+        moved = gtsam.Values()
+        moved.insert(fg.POSE_KEY, pose.retract(xi))
+        return graph.error(moved)
+    h = 1e-7
+    grad = np.array([(cost(h * u) - cost(-h * u)) / (2 * h) for u in np.eye(6)])
+    np.testing.assert_allclose(-A.T @ b, grad, rtol=1e-5, atol=1e-6 * np.abs(grad).max())
+
+    plain = fg.kernel_params(tol, "none")
+    hessian = np.zeros((6, 6))
+    for i in range(len(facets)):
+        e, J = fg.contact_residuals(pose.matrix(), packed[i:i + 1], plain)
+        s = np.linalg.norm(e)
+        k = fg.HUBER_K
+        w = {"none": 1.0, "huber": min(1.0, k / s), "cauchy": 1.0 / (1.0 + s * s / (k * k))}[robust]
+        hessian += w * J.T @ J
+    if robust != "none":
+        assert max(np.linalg.norm(fg.contact_residuals(pose.matrix(), packed[i:i + 1], plain)[0])
+                   for i in range(len(facets))) > 3 * fg.HUBER_K  # some contacts are in the linear part
+    np.testing.assert_allclose(A.T @ A, hessian, rtol=1e-10, atol=1e-12 * np.abs(hessian).max())
 
 
 # ------------------------------------------------------------- same optimum ---
