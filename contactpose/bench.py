@@ -24,7 +24,7 @@ import numpy as np
 from contactpose.contacts import Tolerance
 from contactpose.errors import ContactPoseError
 from contactpose.io.output import bench_header
-from contactpose.localize import localize
+from contactpose.localize import localize, warm_up
 from contactpose.model.object_model import ObjectModel
 from contactpose.sim import grasps as simulate
 from contactpose.sim import objects
@@ -108,7 +108,7 @@ def time_method(model, grasps, method, cap):
     """Per-grasp stage timings and hypothesis counts; stops early past ``cap`` seconds."""
     rows = []
     for g in grasps[:WARMUP]:
-        localize(model, g.contacts, position_noise=POSITION_NOISE, normal_noise_deg=NORMAL_NOISE_DEG, method=method)
+        warm_up(model, g.contacts, position_noise=POSITION_NOISE, normal_noise_deg=NORMAL_NOISE_DEG, method=method)
     noise = dict(position_noise=POSITION_NOISE, normal_noise_deg=NORMAL_NOISE_DEG, method=method)
     for g in grasps:
         r = localize(model, g.contacts, **noise)

@@ -7,7 +7,7 @@ import os
 import numpy as np
 
 from contactpose.geometry.metrics import rotation_error_deg, translation_error
-from contactpose.localize import localize
+from contactpose.localize import localize, warm_up
 from contactpose.model.object_model import ObjectModel
 from contactpose.sim import grasps as simulate
 from contactpose.sim import objects
@@ -22,7 +22,7 @@ DEMO_NORMAL_NOISE_DEG = 1.0
 def _warm_up(model, rng):
     """One untimed pass: the first call loads (or compiles) the numba kernels."""
     g = simulate.grasp(model, rng, n=4, pose=simulate.paper_pose(), where="centroid")
-    localize(model, g.contacts, position_noise=DEMO_POSITION_NOISE, normal_noise_deg=DEMO_NORMAL_NOISE_DEG)
+    warm_up(model, g.contacts, position_noise=DEMO_POSITION_NOISE, normal_noise_deg=DEMO_NORMAL_NOISE_DEG)
 
 
 def run_demo(seed=0, out_dir="results/demo"):

@@ -39,6 +39,7 @@ from contactpose import baselines as bl
 from contactpose import sweep
 from contactpose.geometry import metrics
 from contactpose.localize import localize
+from contactpose.localize import warm_up as warm_localize
 from contactpose.model.object_model import ObjectModel
 from contactpose.sim import grasps as simulate
 from contactpose.sim import objects
@@ -70,7 +71,7 @@ def warm_up(model, surface, target, cfg):
     g = simulate.grasp(model, rng, n=cfg["fingers"], **noise)
     prior = PosePrior(g.pose, 10.0, 0.01)
     for method, solver in (("fast", "closed-form"), ("paper", "closed-form"), ("paper", "lm")):
-        localize(model, g.contacts, prior=prior, method=method, solver=solver, **noise)
+        warm_localize(model, g.contacts, prior=prior, method=method, solver=solver, **noise)
     bl.icp(model, surface, target, g.contacts, g.pose, **noise)
     bl.scaling_series(model, surface, g.contacts, rng, prior=prior, initial=50, per_ball=4, max_particles=50, **noise)
 

@@ -24,7 +24,7 @@ import numpy as np
 
 from contactpose import sweep
 from contactpose.geometry import metrics
-from contactpose.localize import localize
+from contactpose.localize import localize, warm_up
 from contactpose.model.object_model import ObjectModel
 from contactpose.sim import grasps as simulate
 from contactpose.sim import objects
@@ -47,14 +47,15 @@ def protocol_pose(cfg):
 
 
 def warmed_model(cfg):
-    """The banana model, after a few untimed localizations (numba loads its kernels on first call)."""
+    """The banana model, after a few untimed localizations (numba loads its kernels on first call;
+    localize.warm_up also loads the in-facet bound's)."""
     model = ObjectModel.from_mesh(objects.load(cfg["object"]))
     rng = np.random.default_rng(0)
     for _ in range(cfg["warmup"]):
         g = simulate.grasp(model, rng, n=cfg["fingers"], pose=protocol_pose(cfg), where="centroid")
         for method in ("fast", "paper"):
-            localize(model, g.contacts, position_noise=cfg["position_noise"],
-                     normal_noise_deg=cfg["normal_noise_deg"], method=method)
+            warm_up(model, g.contacts, position_noise=cfg["position_noise"],
+                    normal_noise_deg=cfg["normal_noise_deg"], method=method)
     return model
 
 

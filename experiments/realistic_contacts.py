@@ -76,6 +76,7 @@ from contactpose.geometry.raycast import raycaster
 from contactpose.geometry.sampling import perturb_normals
 from contactpose.io.modelfile import FORMAT_VERSION
 from contactpose.localize import find_pairs, listed_rows, localize
+from contactpose.localize import warm_up as warm_localize
 from contactpose.model.object_model import ObjectModel, merged_mesh
 from contactpose.model.table import estimate_bytes
 from contactpose.scoring.infacet import within_noise
@@ -212,7 +213,7 @@ def warm_up():
     rng = np.random.default_rng(0)
     g = simulate.grasp(model, rng, n=4, position_noise=0.0005, normal_noise_deg=1.0)
     for method in ("fast", "paper"):
-        localize(model, g.contacts, position_noise=0.0005, normal_noise_deg=1.0, method=method)
+        warm_localize(model, g.contacts, position_noise=0.0005, normal_noise_deg=1.0, method=method)
     surface = bl.sample_surface(model)
     noise = dict(position_noise=0.0005, normal_noise_deg=1.0)
     bl.icp_multistart(model, surface, bl.icp_target(surface, 500), g.contacts, rng, starts=2, **noise)

@@ -30,6 +30,7 @@ import trimesh
 
 from contactpose import sweep
 from contactpose.localize import localize
+from contactpose.localize import warm_up as warm_localize
 from contactpose.model.object_model import ObjectModel
 from contactpose.sim import grasps as simulate
 from contactpose.sim import objects
@@ -83,7 +84,7 @@ def warm_up(cfg):
     sx, sn = cfg["noise"]["default"]
     g = simulate.grasp(model, np.random.default_rng(0), n=4, position_noise=sx, normal_noise_deg=sn, noise="bounded")
     for method in ("fast", "paper"):
-        localize(model, g.contacts, position_noise=sx, normal_noise_deg=sn, method=method)
+        warm_localize(model, g.contacts, position_noise=sx, normal_noise_deg=sn, method=method)
     return model
 
 
