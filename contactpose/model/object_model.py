@@ -215,8 +215,9 @@ def _diameter_bytes(num_vertices):
     return HULL_BYTES_PER_VERTEX * num_vertices + 256 * min(num_vertices, 4000) * 32
 
 
-#: ObjectModel.smooth_normals blends the normals of facets at a vertex only within this angle.
-CREASE_DEG = 30.0
+#: ObjectModel.smooth_normals blends the normals of facets at a vertex only within this angle
+#: (30° lost 3 of 100 YCB scissors tracks to the mirror-image pose, 15° one; research/tracking.md).
+CREASE_DEG = 15.0
 
 
 def merged_mesh(vertices, faces):

@@ -391,13 +391,15 @@ def reweighted_contact_factors(data, tolerance, robust, point_to_facet, key=POSE
     return [contact_factor(np.ascontiguousarray(data[i:i + 1]), params, key, noise) for i in range(len(data))]
 
 
-def smooth_contact_factor(model, contacts, facets, tolerance, key=POSE_KEY, point_to_facet=True, robust="huber"):
+def smooth_contact_factor(model, contacts, facets, tolerance, key=POSE_KEY, point_to_facet=True, robust="huber",
+                          noise=None):
     """The batched contact factor with each contact's normal residual taken against the
     normal interpolated over its facet from its corners' normals (ObjectModel.smooth_normals)
     at the contact's place, r_n = R n(p) + ñ, n(p) = m(p)/|m(p)|, p = Rᵀ(x̃ - t), instead of the
     facet's own normal: on a fine tessellation of a smooth surface the normal then changes
     continuously from facet to facet. The offset and lateral rows are the contact factor's,
-    and so is the per-contact robust kernel. A gtsam.CustomFactor on ``key``."""
+    and so is the per-contact robust kernel. A gtsam.CustomFactor on ``key``, with ``noise`` on
+    its whitened rows (default: unit)."""
     facets = np.asarray(facets)
     data = pack_contacts(model, contacts, facets)
     params = kernel_params(tolerance, robust, point_to_facet)
@@ -406,7 +408,8 @@ def smooth_contact_factor(model, contacts, facets, tolerance, key=POSE_KEY, poin
     smooth = (np.ascontiguousarray(M[safe]), np.ascontiguousarray(model.triangles[safe, 0]),
               np.ascontiguousarray(corner[safe]), facets >= 0)
     fn = partial(_smooth_error, data, params, smooth, key)
-    return gtsam.CustomFactor(gtsam.noiseModel.Unit.Create(factor_dim(len(data), point_to_facet)), [key], fn)
+    unit = gtsam.noiseModel.Unit.Create(factor_dim(len(data), point_to_facet))
+    return gtsam.CustomFactor(unit if noise is None else noise, [key], fn)
 
 
 def smooth_contact_residuals(T, data, params, smooth):

@@ -16,8 +16,9 @@ Touches of an object that has not moved share one variable.
 A touch after a hand motion adds one variable, its slip factor and one contact factor per
 contact, and ``gtsam.ISAM2`` (Gauss–Newton steps, every change back-substituted, a variable
 relinearized when it moved by more than TRACK_RELINEARIZE) updates the smoothed trajectory
-incrementally. The contact factors are factor_graph.reweighted_contact_factors: the kernel
-as GTSAM's reweighting, on whose steps Gauss–Newton converges, and the point-to-facet rows as
+incrementally. The contact factors are one per contact with the kernel as GTSAM's
+reweighting (factor_graph.reweighted_contact_factors; the smooth model's likewise), on whose
+steps Gauss–Newton converges, and the point-to-facet rows as
 the in-plane vector from the contact's triangle (factor_graph._lateral_rows), whose
 Gauss–Newton model holds. :meth:`PoseTrack.relinearize` iterates iSAM2 to convergence, and
 :meth:`PoseTrack.batch` solves the same graph by Levenberg–Marquardt from the same initial
@@ -113,7 +114,7 @@ class PoseTrack:
         self.touches = []  # (pose variable k, Contacts in the world, facets (n,)) of every touch
         self._slots = []  # per touch: its contact factors' indices in iSAM2, in graph and in spread
         self.score = 0.0  # Σ over touches of the touch's contact χ² just after its update
-        self.isam = _isam2(trust_region=contact_model != "facets")
+        self.isam = _isam2(trust_region=contact_model == "surface")
         factors, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         if prior is not None:
             factors.add(fg.prior_factor(prior, key=0))
@@ -159,14 +160,18 @@ class PoseTrack:
 
     def _factors(self, local, facets, k):
         """The contact factors of a touch (contacts ``local`` in the hand frame) on pose k, and
-        their twins for the spread graph (no point-to-facet rows): one per contact, the kernel
-        as reweighting ("facets"), or one batched factor ("smooth", "surface"). -> ([factor], [twin])"""
+        their twins for the spread graph (no point-to-facet rows): one per contact with the
+        kernel as reweighting ("facets", "smooth"), or one for the touch ("surface", no kernel).
+        -> ([factor], [twin])"""
         if self.contact_model == "surface":
             return ([surface_factor(self.model, local, facets, self.tolerance, k)],
                     [surface_factor(self.model, local, facets, self.tolerance, k)])
         if self.contact_model == "smooth":
-            return ([fg.smooth_contact_factor(self.model, local, facets, self.tolerance, k, self.point_to_facet, self.robust)],
-                    [fg.smooth_contact_factor(self.model, local, facets, self.tolerance, k, False, self.robust)])
+            def smooth(lateral):
+                noise = fg.reweighted_noise(fg.factor_dim(1, lateral), self.robust)
+                return [fg.smooth_contact_factor(self.model, local.permuted([i]), facets[i:i + 1], self.tolerance, k,
+                                                 lateral, "none", noise) for i in range(local.n)]
+            return smooth(self.point_to_facet), smooth(False)
         data = fg.pack_contacts(self.model, local, facets)
         return (fg.reweighted_contact_factors(data, self.tolerance, self.robust, self.point_to_facet, k),
                 fg.reweighted_contact_factors(data, self.tolerance, self.robust, False, k))
@@ -299,7 +304,7 @@ class PoseTrack:
                         for k in range(len(self.hand)))
             if moved <= tol:
                 break
-        self.isam = _isam2(trust_region=self.contact_model != "facets")
+        self.isam = _isam2(trust_region=self.contact_model == "surface")
         self.isam.update(self.graph, estimate)
         self._slots = [(list(at_graph), at_graph, at_spread) for _, at_graph, at_spread in self._slots]
         self._refresh()

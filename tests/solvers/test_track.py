@@ -275,10 +275,11 @@ def test_surface_contact_model_follows_fingertip_contacts_on_edges(rock_model):
     assert max(rotation_error_deg(T, X) for T, X in zip(facets, truth)) > 1e-3
 
 
-def test_track_contact_factors_cost_what_the_batched_factor_costs(rock_model):
-    """A track's contact factors (one per contact, the kernel as GTSAM's reweighting) cost
-    what the single-pose graph's batched factor (the kernel as a square root) costs for the
-    same contacts and facets, with contacts in the kernel's linear part; and the track's
+@pytest.mark.parametrize("contact_model", ["facets", "smooth"])
+def test_track_contact_factors_cost_what_the_batched_factor_costs(rock_model, contact_model):
+    """A track's contact factors (one per contact, the kernel as GTSAM's reweighting; facet or
+    smooth normals) cost what the single-pose graph's batched factor (the kernel as a square
+    root) costs for the same contacts and facets, with contacts in the kernel's linear part; and the track's
     converged first pose is the batched factor's LM optimum."""
     rock = rock_model
     rng = np.random.default_rng(5)
@@ -287,9 +288,12 @@ def test_track_contact_factors_cost_what_the_batched_factor_costs(rock_model):
     moved[0] += 0.05 * rock.diameter * g.contacts.finger_normals[0]  # one contact far off its facet
     contacts = Contacts(moved, g.contacts.finger_normals)
     tol = _tolerance(rock)
-    track = PoseTrack(rock, contacts, g.facets, g.pose, tol)
+    track = PoseTrack(rock, contacts, g.facets, g.pose, tol, contact_model=contact_model)
     batched = gtsam.NonlinearFactorGraph()
-    batched.add(fg.contact_factor(fg.pack_contacts(rock, contacts, g.facets), fg.kernel_params(tol, "huber"), key=0))
+    if contact_model == "smooth":
+        batched.add(fg.smooth_contact_factor(rock, contacts, g.facets, tol, key=0))
+    else:
+        batched.add(fg.contact_factor(fg.pack_contacts(rock, contacts, g.facets), fg.kernel_params(tol, "huber"), key=0))
     values = gtsam.Values()
     values.insert(0, gtsam.Pose3(g.pose))
     assert track.graph.size() == 4
@@ -297,4 +301,6 @@ def test_track_contact_factors_cost_what_the_batched_factor_costs(rock_model):
     assert track.graph.error(values) == pytest.approx(batched.error(values), rel=1e-12)
     params = fg.lm_params(max_iterations=200, relative_tol=1e-14, absolute_tol=0.0)
     best = gtsam.LevenbergMarquardtOptimizer(batched, values, params).optimize().atPose3(0).matrix()
-    np.testing.assert_allclose(track.relinearize()[0], best, atol=1e-8)
+    # smooth normals bend with the contact's place, which Gauss–Newton's model leaves out, and
+    # Dogleg's trust radius stops shrinking at 1e-5: relinearize() stalls 1.7e-6 short there
+    np.testing.assert_allclose(track.relinearize()[0], best, atol=1e-8 if contact_model == "facets" else 1e-5)
