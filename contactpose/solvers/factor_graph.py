@@ -391,25 +391,38 @@ def reweighted_contact_factors(data, tolerance, robust, point_to_facet, key=POSE
     return [contact_factor(np.ascontiguousarray(data[i:i + 1]), params, key, noise) for i in range(len(data))]
 
 
-def smooth_contact_factor(model, contacts, facets, tolerance, key=POSE_KEY, point_to_facet=True, robust="huber",
-                          noise=None):
+def smooth_contact_factor(model, contacts, facets, tolerance, key=POSE_KEY, point_to_facet=True, robust="huber"):
     """The batched contact factor with each contact's normal residual taken against the
     normal interpolated over its facet from its corners' normals (ObjectModel.smooth_normals)
     at the contact's place, r_n = R n(p) + ñ, n(p) = m(p)/|m(p)|, p = Rᵀ(x̃ - t), instead of the
     facet's own normal: on a fine tessellation of a smooth surface the normal then changes
     continuously from facet to facet. The offset and lateral rows are the contact factor's,
-    and so is the per-contact robust kernel. A gtsam.CustomFactor on ``key``, with ``noise`` on
-    its whitened rows (default: unit)."""
+    and so is the per-contact robust kernel. A gtsam.CustomFactor on ``key``."""
+    data, smooth = _smooth_data(model, contacts, facets)
+    unit = gtsam.noiseModel.Unit.Create(factor_dim(len(data), point_to_facet))
+    return gtsam.CustomFactor(unit, [key], partial(_smooth_error, data, kernel_params(tolerance, robust, point_to_facet),
+                                                   smooth, key))
+
+
+def reweighted_smooth_factors(model, contacts, facets, tolerance, robust, point_to_facet, key=POSE_KEY):
+    """:func:`smooth_contact_factor` split into one factor per contact, the kernel as GTSAM's
+    reweighting, as :func:`reweighted_contact_factors`. -> [gtsam.CustomFactor] (n)"""
+    data, smooth = _smooth_data(model, contacts, facets)
+    params = kernel_params(tolerance, "none", point_to_facet)
+    noise = reweighted_noise(factor_dim(1, point_to_facet), robust)
+    return [gtsam.CustomFactor(noise, [key], partial(_smooth_error, np.ascontiguousarray(data[i:i + 1]), params,
+                                                     tuple(np.ascontiguousarray(a[i:i + 1]) for a in smooth), key))
+            for i in range(len(data))]
+
+
+def _smooth_data(model, contacts, facets):
+    """(pack_contacts data (n, 20), smooth = (M (n, 3, 3), a (n, 3), n_a (n, 3), assigned (n,)))."""
     facets = np.asarray(facets)
-    data = pack_contacts(model, contacts, facets)
-    params = kernel_params(tolerance, robust, point_to_facet)
     safe = np.maximum(facets, 0)
     M, corner = model.smooth_normals
-    smooth = (np.ascontiguousarray(M[safe]), np.ascontiguousarray(model.triangles[safe, 0]),
-              np.ascontiguousarray(corner[safe]), facets >= 0)
-    fn = partial(_smooth_error, data, params, smooth, key)
-    unit = gtsam.noiseModel.Unit.Create(factor_dim(len(data), point_to_facet))
-    return gtsam.CustomFactor(unit if noise is None else noise, [key], fn)
+    return pack_contacts(model, contacts, facets), (np.ascontiguousarray(M[safe]),
+                                                    np.ascontiguousarray(model.triangles[safe, 0]),
+                                                    np.ascontiguousarray(corner[safe]), facets >= 0)
 
 
 def smooth_contact_residuals(T, data, params, smooth):

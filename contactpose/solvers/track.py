@@ -167,11 +167,9 @@ class PoseTrack:
             return ([surface_factor(self.model, local, facets, self.tolerance, k)],
                     [surface_factor(self.model, local, facets, self.tolerance, k)])
         if self.contact_model == "smooth":
-            def smooth(lateral):
-                noise = fg.reweighted_noise(fg.factor_dim(1, lateral), self.robust)
-                return [fg.smooth_contact_factor(self.model, local.permuted([i]), facets[i:i + 1], self.tolerance, k,
-                                                 lateral, "none", noise) for i in range(local.n)]
-            return smooth(self.point_to_facet), smooth(False)
+            return (fg.reweighted_smooth_factors(self.model, local, facets, self.tolerance, self.robust,
+                                                 self.point_to_facet, k),
+                    fg.reweighted_smooth_factors(self.model, local, facets, self.tolerance, self.robust, False, k))
         data = fg.pack_contacts(self.model, local, facets)
         return (fg.reweighted_contact_factors(data, self.tolerance, self.robust, self.point_to_facet, k),
                 fg.reweighted_contact_factors(data, self.tolerance, self.robust, False, k))
