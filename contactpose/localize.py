@@ -50,11 +50,11 @@ from contactpose.types import (
     KEEP,
     METHODS,
     OUTLIER_PENALTY,
-    ROBUST,
     SOLVERS,
     HypothesisList,
     PosePrior,
     Result,
+    check_robust,
     fit_threshold,
 )
 
@@ -130,8 +130,7 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
     if keep not in KEEP:
         raise ContactPoseError(f"keep must be one of {KEEP}, got {keep!r}")
     deadline = Deadline(_check_time_limit(time_limit))
-    if robust not in ROBUST:
-        raise ContactPoseError(f"robust must be one of {ROBUST}, got {robust!r}")
+    check_robust(robust)
     max_outliers = _check_outliers(max_outliers, method, contacts.n)
     samples = check_count(samples, "samples", minimum=0)
     if position_noise is None:

@@ -14,11 +14,19 @@ from functools import lru_cache
 import numpy as np
 
 from contactpose.contacts import Tolerance
-from contactpose.errors import PriorError
+from contactpose.errors import ContactPoseError, PriorError
 
 METHODS = ("fast", "paper")
 SOLVERS = ("closed-form", "lm", "factor-graph")
 ROBUST = ("huber", "cauchy", "none")
+
+
+def check_robust(robust):
+    """The robust kernel's name, checked against ROBUST. -> robust"""
+    if robust not in ROBUST:
+        raise ContactPoseError(f"robust must be one of {ROBUST}, got {robust!r}")
+    return robust
+
 #: localize(..., keep=...): list the hypotheses that fit within noise, or every distinct pose.
 KEEP = ("fitting", "all")
 #: solver="factor-graph" refines this many of the best closed-form hypotheses (0: all).

@@ -93,7 +93,7 @@ from contactpose.errors import ContactPoseError, check_count
 from contactpose.geometry.kernels import closest_point_triangle, fit_cost
 from contactpose.solvers import residuals as res
 from contactpose.solvers.closed_form import wahba
-from contactpose.types import DEFAULT_REFINE, ROBUST, HypothesisArrays, PosePrior, fit_threshold, outlier_penalty
+from contactpose.types import DEFAULT_REFINE, HypothesisArrays, PosePrior, check_robust, fit_threshold, outlier_penalty
 
 log = logging.getLogger(__name__)
 
@@ -303,8 +303,7 @@ def pack_contacts(model, contacts, facets):
 def kernel_params(tolerance, robust="none", point_to_facet=True):
     """(6,) float64 factor settings: 1/σ_n, 1/σ_x, kernel width k, the r_l zero, point-to-facet
     (0/1), kernel code (0 none, 1 Huber, 2 Cauchy)."""
-    if robust not in ROBUST:
-        raise ContactPoseError(f"robust must be one of {ROBUST}, got {robust!r}")
+    check_robust(robust)
     k = {"huber": HUBER_K, "cauchy": CAUCHY_K, "none": 0.0}[robust]
     return np.array([1.0 / tolerance.normal_noise, 1.0 / tolerance.position_noise, k,
                      LATERAL_ZERO_REL * tolerance.position_noise, float(bool(point_to_facet)),
@@ -369,9 +368,7 @@ def reweighted_noise(dim, robust):
     factor's kernel (:func:`robust_rho`), applied by reweighting (each linearization scales the
     rows by √w, w = ρ'(s)/s). robust : "huber" | "cauchy" | "none" (unit noise)."""
     unit = gtsam.noiseModel.Unit.Create(dim)
-    if robust not in ROBUST:
-        raise ContactPoseError(f"robust must be one of {ROBUST}, got {robust!r}")
-    if robust == "none":
+    if check_robust(robust) == "none":
         return unit
     kernel = {"huber": gtsam.noiseModel.mEstimator.Huber, "cauchy": gtsam.noiseModel.mEstimator.Cauchy}[robust]
     return gtsam.noiseModel.Robust.Create(kernel.Create(HUBER_K if robust == "huber" else CAUCHY_K), unit)
@@ -398,16 +395,16 @@ def smooth_contact_factor(model, contacts, facets, tolerance, key=POSE_KEY, poin
     facet's own normal: on a fine tessellation of a smooth surface the normal then changes
     continuously from facet to facet. The offset and lateral rows are the contact factor's,
     and so is the per-contact robust kernel. A gtsam.CustomFactor on ``key``."""
-    data, smooth = _smooth_data(model, contacts, facets)
+    data, smooth = smooth_data(model, contacts, facets)
     unit = gtsam.noiseModel.Unit.Create(factor_dim(len(data), point_to_facet))
     return gtsam.CustomFactor(unit, [key], partial(_smooth_error, data, kernel_params(tolerance, robust, point_to_facet),
                                                    smooth, key))
 
 
-def reweighted_smooth_factors(model, contacts, facets, tolerance, robust, point_to_facet, key=POSE_KEY):
+def reweighted_smooth_factors(data, smooth, tolerance, robust, point_to_facet, key=POSE_KEY):
     """:func:`smooth_contact_factor` split into one factor per contact, the kernel as GTSAM's
-    reweighting, as :func:`reweighted_contact_factors`. -> [gtsam.CustomFactor] (n)"""
-    data, smooth = _smooth_data(model, contacts, facets)
+    reweighting, as :func:`reweighted_contact_factors`. data, smooth : from :func:`smooth_data`.
+    -> [gtsam.CustomFactor] (n)"""
     params = kernel_params(tolerance, "none", point_to_facet)
     noise = reweighted_noise(factor_dim(1, point_to_facet), robust)
     return [gtsam.CustomFactor(noise, [key], partial(_smooth_error, np.ascontiguousarray(data[i:i + 1]), params,
@@ -415,8 +412,9 @@ def reweighted_smooth_factors(model, contacts, facets, tolerance, robust, point_
             for i in range(len(data))]
 
 
-def _smooth_data(model, contacts, facets):
-    """(pack_contacts data (n, 20), smooth = (M (n, 3, 3), a (n, 3), n_a (n, 3), assigned (n,)))."""
+def smooth_data(model, contacts, facets):
+    """The smooth factor's inputs: (pack_contacts data (n, 20), smooth = (M (n, 3, 3), a (n, 3),
+    n_a (n, 3), assigned (n,)))."""
     facets = np.asarray(facets)
     safe = np.maximum(facets, 0)
     M, corner = model.smooth_normals
@@ -874,8 +872,7 @@ def _empty(n, robust, prior):
 
 
 def _check(model, contacts, arrays, tolerance, prior, robust, k):
-    if robust not in ROBUST:
-        raise ContactPoseError(f"robust must be one of {ROBUST}, got {robust!r}")
+    check_robust(robust)
     check_count(k, "k", minimum=0)
     if not isinstance(contacts, Contacts):
         raise ContactPoseError(f"contacts must be a contactpose.Contacts, got {type(contacts).__name__}")

@@ -10,17 +10,19 @@ a slip S_k in the object frame:
 The variables are taken in the frame that moves with the hand, Y_k = H_k⁻¹ X_k, where
 H_k = ΔT_k ··· ΔT_1 (H_0 = I). Then Y_k = Y_{k-1} S_k exactly, which is GTSAM's
 ``BetweenFactorPose3(Y_{k-1}, Y_k, I, slip)``, and the contacts of touch k, moved by H_k⁻¹,
-enter the batched contact factor of :mod:`contactpose.solvers.factor_graph` on Y_k unchanged.
+enter the contact factors of :mod:`contactpose.solvers.factor_graph` on Y_k unchanged.
 Touches of an object that has not moved share one variable.
 
 A touch after a hand motion adds one variable, its slip factor and one contact factor per
 contact, and ``gtsam.ISAM2`` (Gauss–Newton steps, every change back-substituted, a variable
 relinearized when it moved by more than TRACK_RELINEARIZE) updates the smoothed trajectory
 incrementally. The contact factors are one per contact with the kernel as GTSAM's
-reweighting (factor_graph.reweighted_contact_factors; the smooth model's likewise), on whose
-steps Gauss–Newton converges, and the point-to-facet rows as
-the in-plane vector from the contact's triangle (factor_graph._lateral_rows), whose
-Gauss–Newton model holds. :meth:`PoseTrack.relinearize` iterates iSAM2 to convergence, and
+reweighting (factor_graph.reweighted_contact_factors; the smooth model's likewise), whose
+steps do not overshoot as the batched factor's square-rooted kernel does, and the
+point-to-facet rows are the in-plane vector from the contact's triangle
+(factor_graph._lateral_rows), whose Gauss–Newton model holds. Gauss–Newton can still cycle
+where a contact's closest feature of its triangle changes, so :meth:`PoseTrack.relinearize`
+converges with Dogleg steps, and
 :meth:`PoseTrack.batch` solves the same graph by Levenberg–Marquardt from the same initial
 values, the reference. The two agree to 1e-6 and better (tests/solvers/test_track.py;
 research/tracking.md, "Gauss–Newton steps").
@@ -36,7 +38,7 @@ from contactpose.errors import ContactPoseError, check_count
 from contactpose.geometry.metrics import rotation_error_deg, translation_error
 from contactpose.solvers import factor_graph as fg
 from contactpose.solvers.surface import surface_factor
-from contactpose.types import PosePrior, check_rigid
+from contactpose.types import PosePrior, check_rigid, check_robust
 
 #: A track's iSAM2 relinearizes, at every update, each variable that moved by more than this
 #: since its linearization (tangent norm: 0.57° in rotation; 10 mm when lengths are metres).
@@ -106,7 +108,7 @@ class PoseTrack:
         if prior is not None and not isinstance(prior, PosePrior):
             raise ContactPoseError(f"prior must be a contactpose.PosePrior or None, got {type(prior).__name__}")
         self.model, self.tolerance = model, tolerance
-        fg.reweighted_noise(1, robust)  # robust checked before the first touch's factors
+        check_robust(robust)
         self.hand = [np.eye(4)]  # H_k
         self.graph = gtsam.NonlinearFactorGraph()  # every factor so far (the batch reference)
         self.spread = gtsam.NonlinearFactorGraph()  # the same without point-to-facet rows (covariance)
@@ -167,9 +169,9 @@ class PoseTrack:
             return ([surface_factor(self.model, local, facets, self.tolerance, k)],
                     [surface_factor(self.model, local, facets, self.tolerance, k)])
         if self.contact_model == "smooth":
-            return (fg.reweighted_smooth_factors(self.model, local, facets, self.tolerance, self.robust,
-                                                 self.point_to_facet, k),
-                    fg.reweighted_smooth_factors(self.model, local, facets, self.tolerance, self.robust, False, k))
+            data = fg.smooth_data(self.model, local, facets)
+            return (fg.reweighted_smooth_factors(*data, self.tolerance, self.robust, self.point_to_facet, k),
+                    fg.reweighted_smooth_factors(*data, self.tolerance, self.robust, False, k))
         data = fg.pack_contacts(self.model, local, facets)
         return (fg.reweighted_contact_factors(data, self.tolerance, self.robust, self.point_to_facet, k),
                 fg.reweighted_contact_factors(data, self.tolerance, self.robust, False, k))
