@@ -13,7 +13,8 @@ Per touch, three estimates of the current pose:
 
 * ``track``: a ``TrackSet`` (iSAM2 per track, at most 20) started from every distinct pose
   that localize lists for the first grasp (``keep="all"``), told the hand motions and the slip
-  sigmas; each contact takes its best-fitting facet under each track's predicted pose; one
+  sigmas, with the contact model of ``--contact-model`` (default "auto": smooth normals on the
+  YCB meshes, PoseTrack); each contact takes its best-fitting facet under each track's predicted pose; one
   iSAM2 update per track and touch; the best track's pose (least sequential χ²);
 * ``batch``: Levenberg–Marquardt on the best track's graph from the same initial values,
   every touch;
@@ -91,7 +92,7 @@ ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "results" / "sequential"
 SETTINGS = dict(steps=30, radius_frac=0.02, position_noise_frac=0.0025, normal_noise_deg=1.0, hand_rot_deg=10.0,
                 hand_trans_frac=0.1, slip_deg=1.0, slip_trans_frac=0.005, lost_deg=10.0, lost_frac=0.1, seed=18,
-                contact_model="facets")
+                contact_model="auto")
 METHODS = ("track", "batch", "relocalize", "pf")
 STRATEGIES = ("suggested", "random")
 #: Particles of the particle-filter baseline.
@@ -292,7 +293,7 @@ def coverage_sequence(model, rng, s, axes):
     tol, first, touches, X = facet_sequence(model, rng, s, 2)
     rows = []
     for facets in ("given", "associated"):
-        track = PoseTrack(model, first.contacts, first.facets, first.pose, tol)
+        track = PoseTrack(model, first.contacts, first.facets, first.pose, tol, contact_model=s["contact_model"])
         for delta, g in touches:
             track.add(g.contacts, facets=g.facets if facets == "given" else None,
                       hand_motion=(delta, s["slip_deg"], s["slip_trans_frac"] * d))
@@ -356,7 +357,8 @@ def speed_sequence(model, rng, s, n_tracks):
     d = model.diameter
     tol, first, touches, _ = facet_sequence(model, rng, s, 1)
     tracks = [PoseTrack(model, first.contacts, first.facets,
-                        first.pose @ motion(rng, s["slip_deg"], s["slip_trans_frac"] * d), tol)
+                        first.pose @ motion(rng, s["slip_deg"], s["slip_trans_frac"] * d), tol,
+                        contact_model=s["contact_model"])
               for _ in range(n_tracks)]
     ms = []
     for delta, g in touches:
@@ -423,7 +425,7 @@ def main(argv=None):
     parser.add_argument("--steps", type=int, default=SETTINGS["steps"], help="touches after the first grasp")
     parser.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS), help="tracking methods to run")
     parser.add_argument("--max-touches", type=int, default=15, help="active: touches per sequence at most")
-    parser.add_argument("--contact-model", default=SETTINGS["contact_model"], choices=("facets", "smooth", "surface"),
+    parser.add_argument("--contact-model", default=SETTINGS["contact_model"], choices=("auto", "facets", "smooth", "surface"),
                         help="the tracks' contact model (PoseTrack)")
     parser.add_argument("--out", default=str(OUT))
     args = parser.parse_args(argv)

@@ -20,6 +20,14 @@ def skew(v):
     return S - np.swapaxes(S, -1, -2)
 
 
+def rigid_inverse(T):
+    """The inverse of a rigid transform T (4, 4): [Rᵀ, -Rᵀ t]."""
+    inv = np.eye(4)
+    inv[:3, :3] = T[:3, :3].T
+    inv[:3, 3] = -T[:3, 3] @ T[:3, :3]
+    return inv
+
+
 def rotation_error_deg(T_est, T_true):
     """Angle of R_estᵀ R_true in degrees. T_* : (..., 4, 4) -> (...)"""
     R = np.einsum("...ji,...jk->...ik", T_est[..., :3, :3], T_true[..., :3, :3])

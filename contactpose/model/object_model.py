@@ -463,6 +463,26 @@ class ObjectModel:
         return dN @ G, vn[:, 0]
 
     @cached_property
+    def normal_roughness(self):
+        """(m,) per facet, how far the mesh's own normal strays from the smooth normal over it
+        (:attr:`smooth_normals`): the root mean square over the facet's area of the angle
+        between them (radians), divided by √2 to be per tangent axis, as a normal noise σ_n is.
+        A contact on the facet carries the facet's normal (or one between it and a neighbour's),
+        not the smooth normal, so the smooth contact model adds this to σ_n. The mean is the
+        triangle rule exact for cubics (corners 3/60, edge midpoints 8/60, centroid 27/60)."""
+        M, corner = self.smooth_normals
+        tri = self.triangles
+        rule = ((1 / 20, (1, 0, 0)), (1 / 20, (0, 1, 0)), (1 / 20, (0, 0, 1)), (2 / 15, (0.5, 0.5, 0)),
+                (2 / 15, (0, 0.5, 0.5)), (2 / 15, (0.5, 0, 0.5)), (9 / 20, (1 / 3, 1 / 3, 1 / 3)))
+        mean2 = np.zeros(len(tri))
+        for weight, bary in rule:
+            m = corner + np.einsum("fij,fj->fi", M, np.asarray(bary) @ tri - tri[:, 0])
+            cos = np.einsum("fi,fi->f", m, self.planes.normals)
+            sin = np.linalg.norm(np.cross(m, self.planes.normals), axis=1)
+            mean2 += weight * np.arctan2(sin, cos) ** 2
+        return np.sqrt(mean2 / 2.0)
+
+    @cached_property
     def centroid_tree(self):
         """(scipy cKDTree over the valid facets' centroids, those facets (F,) int, their largest
         radius): a nearest-facet search that can bound what it has not looked at."""

@@ -289,15 +289,15 @@ def pack_contacts(model, contacts, facets):
     model : ObjectModel; contacts : Contacts; facets : (..., n) int  ->  (..., n, 20) float64
     """
     facets = np.asarray(facets)
-    lead = facets.shape[:-1]
     safe = np.maximum(facets, 0)
-    return np.concatenate([
-        model.planes.normals[safe], model.planes.offsets[safe][..., None],
-        model.triangles[safe].reshape(facets.shape + (9,)),
-        np.broadcast_to(contacts.points, lead + contacts.points.shape),
-        np.broadcast_to(contacts.finger_normals, lead + contacts.points.shape),
-        (facets >= 0)[..., None].astype(np.float64),
-    ], axis=-1)
+    data = np.empty(facets.shape + (20,))
+    data[..., 0:3] = model.planes.normals[safe]
+    data[..., 3] = model.planes.offsets[safe]
+    data[..., 4:13] = model.triangles[safe].reshape(facets.shape + (9,))
+    data[..., 13:16] = contacts.points
+    data[..., 16:19] = contacts.finger_normals
+    data[..., 19] = facets >= 0
+    return data
 
 
 def kernel_params(tolerance, robust="none", point_to_facet=True):
@@ -313,6 +313,16 @@ def kernel_params(tolerance, robust="none", point_to_facet=True):
 def factor_dim(n, point_to_facet):
     """Rows of the batched contact factor of n contacts."""
     return n * (6 if point_to_facet else 4)
+
+
+def contact_norms(e, n):
+    """Each contact's whitened norm s_i from the error e (m,) of n contacts' rows without a
+    robust kernel (the layout of :func:`_contact_rows`: 3n normal, n offset, 2n lateral rows
+    when present). -> (n,)"""
+    s2 = np.sum(e[:3 * n].reshape(n, 3) ** 2, axis=1) + e[3 * n:4 * n] ** 2
+    if len(e) > 4 * n:
+        s2 += np.sum(e[4 * n:].reshape(n, 2) ** 2, axis=1)
+    return np.sqrt(s2)
 
 
 def lateral_norms(e, n):
@@ -393,66 +403,94 @@ def smooth_contact_factor(model, contacts, facets, tolerance, key=POSE_KEY, poin
     normal interpolated over its facet from its corners' normals (ObjectModel.smooth_normals)
     at the contact's place, r_n = R n(p) + ñ, n(p) = m(p)/|m(p)|, p = Rᵀ(x̃ - t), instead of the
     facet's own normal: on a fine tessellation of a smooth surface the normal then changes
-    continuously from facet to facet. The offset and lateral rows are the contact factor's,
-    and so is the per-contact robust kernel. A gtsam.CustomFactor on ``key``."""
-    data, smooth = smooth_data(model, contacts, facets)
-    unit = gtsam.noiseModel.Unit.Create(factor_dim(len(data), point_to_facet))
-    return gtsam.CustomFactor(unit, [key], partial(_smooth_error, data, kernel_params(tolerance, robust, point_to_facet),
-                                                   smooth, key))
+    continuously from facet to facet. The mesh's own normals stray from n(p) by the facet's
+    ObjectModel.normal_roughness ρ_f, so a contact's normal rows are whitened by
+    √(σ_n² + ρ_f²). The offset and lateral rows are the contact factor's, and so is the
+    per-contact robust kernel. A gtsam.CustomFactor on ``key``."""
+    data, smooth = smooth_data(model, contacts, facets, tolerance)
+    return _smooth_factor(data, smooth, kernel_params(tolerance, robust, point_to_facet), True, key,
+                          gtsam.noiseModel.Unit.Create(factor_dim(len(data), point_to_facet)))
 
 
-def reweighted_smooth_factors(data, smooth, tolerance, robust, point_to_facet, key=POSE_KEY):
+def reweighted_smooth_factors(data, smooth, tolerance, robust, point_to_facet, key=POSE_KEY, place=True):
     """:func:`smooth_contact_factor` split into one factor per contact, the kernel as GTSAM's
-    reweighting, as :func:`reweighted_contact_factors`. data, smooth : from :func:`smooth_data`.
+    reweighting, as :func:`reweighted_contact_factors`. data, smooth : from :func:`smooth_data`;
+    place : False drops n(p)'s change with the contact's place from the normal rows' Jacobian
+    (∂/∂ω = -R [n]×, ∂/∂v = 0), as for the covariance of a faceted surface, whose normal is
+    constant over a facet (research/tracking.md, "Covariance of a track on a fine mesh").
     -> [gtsam.CustomFactor] (n)"""
     params = kernel_params(tolerance, "none", point_to_facet)
     noise = reweighted_noise(factor_dim(1, point_to_facet), robust)
-    return [gtsam.CustomFactor(noise, [key], partial(_smooth_error, np.ascontiguousarray(data[i:i + 1]), params,
-                                                     tuple(np.ascontiguousarray(a[i:i + 1]) for a in smooth), key))
+    return [_smooth_factor(data[i:i + 1].copy(), smooth[i:i + 1].copy(), params, place, key, noise)
             for i in range(len(data))]
 
 
-def smooth_data(model, contacts, facets):
-    """The smooth factor's inputs: (pack_contacts data (n, 20), smooth = (M (n, 3, 3), a (n, 3),
-    n_a (n, 3), assigned (n,)))."""
+def _smooth_factor(data, smooth, params, place, key, noise):
+    m = factor_dim(len(data), params[4] != 0.0)
+    fn = partial(_smooth_error, data, params, smooth, place, np.empty(m), np.empty((m, 6)), key)
+    return gtsam.CustomFactor(noise, [key], fn)
+
+
+def smooth_data(model, contacts, facets, tolerance):
+    """The smooth factor's inputs: (pack_contacts data (n, 20), smooth (n, 17): per contact M
+    (9, row-major), a (3), n_a (3), assigned (1.0 or 0.0), 1/√(σ_n² + ρ_f²), ρ_f the facet's
+    normal roughness)."""
     facets = np.asarray(facets)
     safe = np.maximum(facets, 0)
     M, corner = model.smooth_normals
-    return pack_contacts(model, contacts, facets), (np.ascontiguousarray(M[safe]),
-                                                    np.ascontiguousarray(model.triangles[safe, 0]),
-                                                    np.ascontiguousarray(corner[safe]), facets >= 0)
+    smooth = np.empty((len(safe), 17))
+    smooth[:, 0:9] = M[safe].reshape(-1, 9)
+    smooth[:, 9:12] = model.triangles[safe, 0]
+    smooth[:, 12:15] = corner[safe]
+    smooth[:, 15] = facets >= 0
+    smooth[:, 16] = 1.0 / np.hypot(tolerance.normal_noise, model.normal_roughness[safe])
+    return pack_contacts(model, contacts, facets), smooth
 
 
-def smooth_contact_residuals(T, data, params, smooth):
+def smooth_contact_residuals(T, data, params, smooth, place=True):
     """The smooth factor's error (m,) and Jacobian (m, 6) at a pose T (4, 4): see
-    :func:`smooth_contact_factor`; smooth = (M (n, 3, 3), a (n, 3), n_a (n, 3), assigned (n,))."""
-    plain = params.copy()
-    plain[5] = 0.0  # the kernel goes on after the normal rows are replaced
-    e, J = contact_residuals(T, data, plain)
-    _smooth_normal_rows(np.ascontiguousarray(T, dtype=np.float64), data, *smooth, params[0], e, J)
-    if params[5] != 0.0:
-        _robust_rows(e, J, len(data), params[4] != 0.0, int(params[5]), params[2], True)
+    :func:`smooth_contact_factor`; smooth : from :func:`smooth_data`; place : as for
+    :func:`reweighted_smooth_factors`."""
+    m = factor_dim(len(data), params[4] != 0.0)
+    e, J = np.empty(m), np.empty((m, 6))
+    _smooth_rows(np.ascontiguousarray(T, dtype=np.float64), data, params, smooth, place, e, J)
     return e, J
 
 
 @njit(cache=True)
-def _smooth_normal_rows(T, data, M, a, na, used, inv_sn, e, J):
+def _smooth_rows(T, data, params, smooth, place, e, J):
+    """The contact rows (:func:`_contact_rows`, no kernel), their normal rows replaced by the
+    smooth ones (:func:`_smooth_normal_rows`), then the kernel of ``params``."""
+    plain = params.copy()
+    plain[5] = 0.0
+    _contact_rows(T, data, plain, e, J)
+    _smooth_normal_rows(T, data, smooth, place, e, J)
+    if params[5] != 0.0:
+        _robust_rows(e, J, data.shape[0], params[4] != 0.0, int(params[5]), params[2], True)
+
+
+@njit(cache=True)
+def _smooth_normal_rows(T, data, smooth, place, e, J):
     """Overwrite the 3n normal rows of e and J with r_n = R n(p) + ñ, n = m/|m|, m = n_a + M (p - a),
-    p = Rᵀ(x̃ - t): ∂/∂ω = R(-[n]× + Dn [p]×), ∂/∂v = -R Dn, Dn = (I - n nᵀ) M / |m|."""
+    p = Rᵀ(x̃ - t), whitened by 1/√(σ_n² + ρ_f²) (smooth: from :func:`smooth_data`):
+    ∂/∂ω = R(-[n]× + Dn [p]×), ∂/∂v = -R Dn, Dn = (I - n nᵀ) M / |m|; without ``place``, Dn = 0
+    in the Jacobian."""
     R, t = np.ascontiguousarray(T[:3, :3]), T[:3, 3].copy()
     Rt = np.ascontiguousarray(R.T)
     for i in range(data.shape[0]):
         rows = slice(3 * i, 3 * i + 3)
-        if not used[i]:
+        if smooth[i, 15] == 0.0:
             e[rows] = 0.0
             J[rows] = 0.0
             continue
+        M = smooth[i, 0:9].copy().reshape((3, 3))
+        inv_sn = smooth[i, 16]
         p = Rt @ (data[i, 13:16] - t)
-        m = na[i] + M[i] @ (p - a[i])
+        m = smooth[i, 12:15] + M @ (p - smooth[i, 9:12])
         size = np.sqrt(m @ m)
         nu = m / size
         e[rows] = (R @ nu + data[i, 16:19]) * inv_sn
-        Dn = (np.eye(3) - np.outer(nu, nu)) @ M[i] / size
+        Dn = (np.eye(3) - np.outer(nu, nu)) @ M / size if place else np.zeros((3, 3))
         J[rows, :3] = R @ (Dn @ _hat(p) - _hat(nu)) * inv_sn  # Dn, the hats: fresh, contiguous
         J[rows, 3:] = -(R @ Dn) * inv_sn
 
@@ -463,8 +501,9 @@ def _hat(v):
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
-def _smooth_error(data, params, smooth, key, this, values, H):
-    e, J = smooth_contact_residuals(values.atPose3(key).matrix(), data, params, smooth)
+def _smooth_error(data, params, smooth, place, e, J, key, this, values, H):
+    """CustomFactor error function of the smooth factor, as :func:`contact_error`."""
+    _smooth_rows(values.atPose3(key).matrix(), data, params, smooth, place, e, J)
     if H is not None:
         H[0] = J
     return e

@@ -26,6 +26,12 @@ converges with Dogleg steps, and
 :meth:`PoseTrack.batch` solves the same graph by Levenberg–Marquardt from the same initial
 values, the reference. The two agree to 1e-6 and better (tests/solvers/test_track.py;
 research/tracking.md, "Gauss–Newton steps").
+
+On a fine tessellation (facets a few sensor sigmas wide, such as the YCB meshes) a contact's
+facet is ambiguous, and the default contact model ("auto") is then the smooth one: the normal
+interpolated over the facet, its noise widened by the mesh's roughness about it, no
+point-to-facet rows, so that a contact slides from facet to facet (research/tracking.md,
+"Smooth normals by default on fine meshes").
 """
 
 from __future__ import annotations
@@ -35,7 +41,7 @@ import numpy as np
 
 from contactpose.contacts import Contacts, Tolerance
 from contactpose.errors import ContactPoseError, check_count
-from contactpose.geometry.metrics import rotation_error_deg, translation_error
+from contactpose.geometry.metrics import rigid_inverse, rotation_error_deg, translation_error
 from contactpose.solvers import factor_graph as fg
 from contactpose.solvers.surface import surface_factor
 from contactpose.types import PosePrior, check_rigid, check_robust
@@ -51,7 +57,12 @@ WILDFIRE_THRESHOLD = 0.0
 #: (χ²₆ at 1 - 1e-6: a pose that much less likely than the best), and the distance within which
 #: two tracks are one pose (rotation in degrees, translation as a fraction of the diameter).
 MAX_TRACKS = 20
-CONTACT_MODELS = ("facets", "smooth", "surface")
+CONTACT_MODELS = ("auto", "facets", "smooth", "surface")
+#: contact_model "auto" is "smooth" on a mesh whose median facet radius is below this many
+#: sensor sigmas σ_x (a contact's facet is then ambiguous: the YCB meshes, 2.2–5.4), else
+#: "facets" (the built-in meshes, 17–55; research/tracking.md, "Smooth normals by default on
+#: fine meshes").
+SMOOTH_BELOW = 8.0
 #: Associated touches: after the update, each contact takes its best-fitting facet again under
 #: the updated pose, and the touch's factor is swapped while that changes, at most this often.
 REASSOCIATE = 5
@@ -78,6 +89,17 @@ def checked_motion(hand_motion):
     return check_rigid(delta, "hand motion"), hand_motion_noise(sigma_rot_deg, sigma_trans)
 
 
+def resolved_contact_model(model, tolerance, contact_model):
+    """The contact model that "auto" stands for on this model and sensor noise (SMOOTH_BELOW),
+    or ``contact_model`` itself, checked."""
+    if contact_model not in CONTACT_MODELS:
+        raise ContactPoseError(f"contact_model must be one of {CONTACT_MODELS}, got {contact_model!r}")
+    if contact_model != "auto":
+        return contact_model
+    fine = np.median(model.facet_radii[model.planes.valid]) < SMOOTH_BELOW * tolerance.position_noise
+    return "smooth" if fine else "facets"
+
+
 def _check_contacts(contacts):
     if not isinstance(contacts, Contacts):
         raise ContactPoseError(f"contacts must be a contactpose.Contacts, got {type(contacts).__name__}")
@@ -89,34 +111,37 @@ class PoseTrack:
     model : ObjectModel; contacts : Contacts of the first touch; facets : (n,) int, their
     facets; pose : (4, 4) T_world_object to start from (the hypothesis's pose); tolerance :
     Tolerance (σ_x, σ_n); robust : "huber" | "cauchy" | "none"; prior : PosePrior on the first
-    pose, or None (then the first touch must determine the pose); point_to_facet : the lateral
-    residual of a contact outside its triangle (factor_graph's contact factor); contact_model :
-    "facets" (default: factor_graph's contact factor on each contact's facet plane), "smooth"
-    (the same with the normal interpolated over the facet from its corners' normals, for fine
-    tessellations of smooth surfaces: factor_graph.smooth_contact_factor), or "surface" (the
-    contact on a face, an edge or a vertex, its normal in that feature's normal cone,
-    solvers.surface.surface_factor; no robust kernel).
+    pose, or None (then the first touch must determine the pose); contact_model : "facets"
+    (factor_graph's contact factor on each contact's facet plane), "smooth" (the same with the
+    normal interpolated over the facet from its corners' normals, for fine tessellations of
+    smooth surfaces: factor_graph.smooth_contact_factor), "surface" (the contact on a face, an
+    edge or a vertex, its normal in that feature's normal cone, solvers.surface.surface_factor;
+    no robust kernel) or "auto" (default: "smooth" on a mesh whose facets are a few sensor
+    sigmas wide, else "facets": :func:`resolved_contact_model`); point_to_facet : the lateral
+    residual of a contact outside its triangle (factor_graph's contact factor); None (default):
+    on with facet normals, off with smooth ones, where a contact slides from facet to facet.
     """
 
-    def __init__(self, model, contacts, facets, pose, tolerance, *, robust="huber", prior=None, point_to_facet=True,
-                 contact_model="facets"):
-        if contact_model not in CONTACT_MODELS:
-            raise ContactPoseError(f"contact_model must be one of {CONTACT_MODELS}, got {contact_model!r}")
-        self.contact_model, self.point_to_facet, self.robust = contact_model, point_to_facet, robust
+    def __init__(self, model, contacts, facets, pose, tolerance, *, robust="huber", prior=None, point_to_facet=None,
+                 contact_model="auto"):
         if not isinstance(tolerance, Tolerance):
             raise ContactPoseError(f"tolerance must be a contactpose.Tolerance, got {type(tolerance).__name__}")
+        self.contact_model = resolved_contact_model(model, tolerance, contact_model)
+        self.point_to_facet = self.contact_model == "facets" if point_to_facet is None else bool(point_to_facet)
+        self.robust = robust
         if prior is not None and not isinstance(prior, PosePrior):
             raise ContactPoseError(f"prior must be a contactpose.PosePrior or None, got {type(prior).__name__}")
         self.model, self.tolerance = model, tolerance
         check_robust(robust)
         self.hand = [np.eye(4)]  # H_k
         self.graph = gtsam.NonlinearFactorGraph()  # every factor so far (the batch reference)
-        self.spread = gtsam.NonlinearFactorGraph()  # the same without point-to-facet rows (covariance)
+        self._others = gtsam.NonlinearFactorGraph()  # the prior and slip factors, for :attr:`spread`
+        self._twins = []  # per touch: its contact factors' twins for :attr:`spread`, or None: not built yet
         self.initial = gtsam.Values()
         self.touches = []  # (pose variable k, Contacts in the world, facets (n,)) of every touch
-        self._slots = []  # per touch: its contact factors' indices in iSAM2, in graph and in spread
+        self._slots = []  # per touch: its contact factors' indices in iSAM2 and in graph
         self.score = 0.0  # Σ over touches of the touch's contact χ² just after its update
-        self.isam = _isam2(trust_region=contact_model == "surface")
+        self.isam = _isam2(trust_region=self.contact_model == "surface")
         factors, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
         if prior is not None:
             factors.add(fg.prior_factor(prior, key=0))
@@ -160,35 +185,51 @@ class PoseTrack:
             values.insert(k, self._last)  # Y_k predicted: no slip
         self._update(factors, values, contacts, facets, hand, score=score)
 
-    def _factors(self, local, facets, k):
-        """The contact factors of a touch (contacts ``local`` in the hand frame) on pose k, and
-        their twins for the spread graph (no point-to-facet rows): one per contact with the
-        kernel as reweighting ("facets", "smooth"), or one for the touch ("surface", no kernel).
-        -> ([factor], [twin])"""
+    def _factors(self, local, facets, k, twin=False):
+        """The contact factors of a touch (contacts ``local`` in the hand frame) on pose k: one
+        per contact with the kernel as reweighting ("facets", "smooth"), or one for the touch
+        ("surface", no kernel); ``twin``: those of :attr:`spread` instead (no point-to-facet
+        rows; with smooth normals, no place information from the normal:
+        factor_graph.reweighted_smooth_factors). -> [factor]"""
+        lateral = self.point_to_facet and not twin
         if self.contact_model == "surface":
-            return ([surface_factor(self.model, local, facets, self.tolerance, k)],
-                    [surface_factor(self.model, local, facets, self.tolerance, k)])
+            return [surface_factor(self.model, local, facets, self.tolerance, k)]
         if self.contact_model == "smooth":
-            data = fg.smooth_data(self.model, local, facets)
-            return (fg.reweighted_smooth_factors(*data, self.tolerance, self.robust, self.point_to_facet, k),
-                    fg.reweighted_smooth_factors(*data, self.tolerance, self.robust, False, k))
+            data, smooth = fg.smooth_data(self.model, local, facets, self.tolerance)
+            if not twin:
+                self._packed = (data, smooth)
+            return fg.reweighted_smooth_factors(data, smooth, self.tolerance, self.robust, lateral, k, place=not twin)
         data = fg.pack_contacts(self.model, local, facets)
-        return (fg.reweighted_contact_factors(data, self.tolerance, self.robust, self.point_to_facet, k),
-                fg.reweighted_contact_factors(data, self.tolerance, self.robust, False, k))
+        if not twin:
+            self._packed = (data, None)
+        return fg.reweighted_contact_factors(data, self.tolerance, self.robust, lateral, k)
+
+    @property
+    def spread(self):
+        """gtsam.NonlinearFactorGraph of :attr:`covariance`: :attr:`graph` with each contact factor
+        replaced by its twin (:meth:`_factors` with ``twin``), each touch's twins built once."""
+        graph = gtsam.NonlinearFactorGraph()
+        graph.push_back(self._others)
+        for i, (k, contacts, facets) in enumerate(self.touches):
+            if self._twins[i] is None:
+                self._twins[i] = self._factors(contacts.transformed(rigid_inverse(self.hand[k])), facets, k, twin=True)
+            for twin in self._twins[i]:
+                graph.add(twin)
+        return graph
 
     def _swap(self, facets):
         """The last touch's contact factors replaced by those on ``facets``: one iSAM2 update."""
         k, contacts, _ = self.touches[-1]
-        factors, twins = self._factors(contacts.transformed(np.linalg.inv(self.hand[k])), facets, k)
-        slots, at_graph, at_spread = self._slots[-1]
+        factors = self._factors(self._local, facets, k)
+        slots, at_graph = self._slots[-1]
         new = gtsam.NonlinearFactorGraph()
-        for factor, twin, i, j in zip(factors, twins, at_graph, at_spread):
+        for factor, i in zip(factors, at_graph):
             self.graph.replace(i, factor)
-            self.spread.replace(j, twin)
             new.add(factor)
         result = self.isam.update(new, gtsam.Values(), slots)
-        self._slots[-1] = (list(result.getNewFactorsIndices()), at_graph, at_spread)
+        self._slots[-1] = (list(result.getNewFactorsIndices()), at_graph)
         self.touches[-1] = (k, contacts, facets)
+        self._twins[-1] = None
         self._refresh()
 
     def _refresh(self):
@@ -204,10 +245,20 @@ class PoseTrack:
         return self._full
 
     def _last_chi2(self):
-        """χ² (2 · error) of the last touch's contact factors (on the last pose alone) at the estimate."""
-        at = gtsam.Values()
-        at.insert(len(self.hand) - 1, self._last)
-        return 2.0 * sum(self.graph.at(i).error(at) for i in self._slots[-1][1])
+        """χ² (2 · error) of the last touch's contact factors (on the last pose alone) at the
+        estimate: Σ 2ρ(s_i) over its contacts, s_i the whitened norm of contact i's rows, from
+        one compiled evaluation of the touch's packed contacts (the "surface" factor: its error)."""
+        if self.contact_model == "surface":
+            at = gtsam.Values()
+            at.insert(len(self.hand) - 1, self._last)
+            return 2.0 * sum(self.graph.at(i).error(at) for i in self._slots[-1][1])
+        data, smooth = self._packed
+        params = fg.kernel_params(self.tolerance, "none", self.point_to_facet)
+        T = self._last.matrix()
+        e = (fg.contact_residuals(T, data, params, jacobian=False)[0] if smooth is None
+             else fg.smooth_contact_residuals(T, data, params, smooth)[0])
+        kernel = fg.kernel_params(self.tolerance, self.robust)
+        return 2.0 * float(np.sum(fg.robust_rho(fg.contact_norms(e, len(data)), int(kernel[5]), kernel[2])))
 
     def _update(self, factors, values, contacts, facets, hand=None, score=True):
         """The contact factor of a touch on the last pose variable (a new one, at hand pose
@@ -222,12 +273,13 @@ class PoseTrack:
             self.hand.append(hand)
         k = len(self.hand) - 1
         self.touches.append((k, contacts, facets))
-        contact_factors, twins = self._factors(contacts.transformed(np.linalg.inv(self.hand[k])), facets, k)
+        self._local = contacts.transformed(rigid_inverse(self.hand[k]))  # the touch in the hand frame
+        self._twins.append(None)
+        contact_factors = self._factors(self._local, facets, k)
         for i in range(factors.size()):
-            self.spread.add(factors.at(i))
+            self._others.add(factors.at(i))
             self.graph.add(factors.at(i))
-        for factor, twin in zip(contact_factors, twins):
-            self.spread.add(twin)
+        for factor in contact_factors:
             self.graph.add(factor)
             factors.add(factor)
         self.initial.insert(values)
@@ -237,8 +289,7 @@ class PoseTrack:
             raise ContactPoseError(f"pose {k}: the contacts so far leave pose directions free; give a prior "
                                    f"or more contacts ({type(err).__name__})") from None
         n = len(contact_factors)
-        self._slots.append((list(result.getNewFactorsIndices())[-n:], list(range(self.graph.size() - n, self.graph.size())),
-                            list(range(self.spread.size() - n, self.spread.size()))))
+        self._slots.append((list(result.getNewFactorsIndices())[-n:], list(range(self.graph.size() - n, self.graph.size()))))
         self._refresh()
         if score:
             self.score += self._last_chi2()
@@ -267,10 +318,12 @@ class PoseTrack:
         in the tangent space of Y_k (a right perturbation of X_k = H_k Y_k is the same one of
         Y_k). As the single-pose factor graph's, it leaves out the point-to-facet hinge's
         curvature (factor_graph._optimize): the marginal of :attr:`spread`, or iSAM2's own
-        where that leaves directions free. It holds each touch's facets fixed. Where facets are
-        smaller than the slip moves a contact, the association is uncertain and the region is
-        too small: its 95 % region held the truth in 54 % of YCB banana sequences, against
-        88.5–93 % on the rock (research/tracking.md, "Covariance of a track on a fine mesh")."""
+        where that leaves directions free. It holds each touch's facets fixed. With smooth
+        normals ("auto" on a fine mesh) it takes no place information from the normal, whose
+        facet-to-facet roughness is in its noise. Its 95 % region held the truth in 88.5 % of
+        rock sequences and in 78 % on the YCB banana, where rotation about the long axis is
+        about twice its stated spread: treat it as too small there (research/tracking.md,
+        "Smooth normals by default on fine meshes")."""
         k = len(self.hand) - 1
         try:
             return gtsam.Marginals(self.spread, self._estimate).marginalCovariance(k)
@@ -306,7 +359,7 @@ class PoseTrack:
                 break
         self.isam = _isam2(trust_region=self.contact_model == "surface")
         self.isam.update(self.graph, estimate)
-        self._slots = [(list(at_graph), at_graph, at_spread) for _, at_graph, at_spread in self._slots]
+        self._slots = [(list(at_graph), at_graph) for _, at_graph in self._slots]
         self._refresh()
         return self.poses
 
@@ -351,7 +404,7 @@ class TrackSet:
     """
 
     def __init__(self, model, contacts, starts, tolerance, *, max_tracks=MAX_TRACKS, prune_chi2=PRUNE_CHI2,
-                 merge_deg=MERGE_DEG, merge_frac=MERGE_FRAC, robust="huber", contact_model="facets"):
+                 merge_deg=MERGE_DEG, merge_frac=MERGE_FRAC, robust="huber", contact_model="auto"):
         if not starts:
             raise ContactPoseError("a TrackSet needs at least one start (facets, pose)")
         self.max_tracks, self.prune_chi2 = check_count(max_tracks, "max_tracks", minimum=1), float(prune_chi2)
@@ -404,8 +457,9 @@ def add_touch(tracks, contacts, motion):
     tracks : [PoseTrack] sharing one model and tolerance; contacts : Contacts (world frame);
     motion : None or (ΔT (4, 4), slip noise model), as from :func:`checked_motion`."""
     model, tolerance = tracks[0].model, tracks[0].tolerance
-    if any(t.model is not model or t.tolerance != tolerance for t in tracks):
-        raise ContactPoseError("tracks touched together must share one model and one tolerance")
+    if any(t.model is not model or t.tolerance != tolerance or t.contact_model != tracks[0].contact_model
+           for t in tracks):
+        raise ContactPoseError("tracks touched together must share one model, one tolerance and one contact model")
     facets = fg.nearest_fit_facets(model, contacts, np.stack([t._predicted(motion) for t in tracks]), tolerance)
     for t, f in zip(tracks, facets):
         t._step(contacts, f, motion, score=False)
@@ -420,3 +474,4 @@ def add_touch(tracks, contacts, motion):
             break
     for t in tracks:
         t.score += t._last_chi2()
+

@@ -772,6 +772,49 @@ def test_smooth_normals_follow_the_surface_and_keep_creases():
     np.testing.assert_allclose(M, 0.0, atol=1e-12)
 
 
+def test_normal_roughness_matches_dense_sampling():
+    """ObjectModel.normal_roughness (a quadrature rule) against the root mean square angle
+    between the facet's normal and the smooth normal at 4,000 uniform points of each of 40
+    facets of the coarse ellipsoid, per axis (÷√2); on the box, all creases, it is 0."""
+    from contactpose.model.object_model import ObjectModel
+    from contactpose.sim import objects
+
+    model, _ = _ellipsoid_model(subdivisions=2)
+    M, corner = model.smooth_normals
+    rng = np.random.default_rng(8)
+    for f in rng.choice(model.num_facets, 40, replace=False):
+        u, v = rng.random((2, 4000))
+        u, v = np.where(u + v > 1, 1 - u, u), np.where(u + v > 1, 1 - v, v)
+        a, b, c = model.triangles[f]
+        m = corner[f] + (np.outer(u, b - a) + np.outer(v, c - a)) @ M[f].T
+        cos = m @ model.planes.normals[f] / np.linalg.norm(m, axis=1)
+        reference = np.sqrt(np.mean(np.arccos(np.clip(cos, -1, 1)) ** 2) / 2)
+        assert model.normal_roughness[f] == pytest.approx(reference, rel=0.02)
+    box = ObjectModel.from_mesh(objects.load("box"))
+    np.testing.assert_allclose(box.normal_roughness, 0.0, atol=1e-12)
+
+
+def test_smooth_normal_rows_are_whitened_by_noise_and_roughness():
+    """The smooth factor's normal rows equal (R n(p) + ñ)/√(σ_n² + ρ_f²), computed here from
+    smooth_normals and normal_roughness, at random grasps of the coarse ellipsoid."""
+    model, _ = _ellipsoid_model(subdivisions=2)
+    tol = Tolerance.from_noise(0.0025 * model.diameter, 1.0)
+    M, corner = model.smooth_normals
+    rng = np.random.default_rng(4)
+    for _ in range(5):
+        g = simulate.grasp(model, rng, n=3, position_noise=tol.position_noise, normal_noise_deg=1.0)
+        pose = gtsam.Pose3(g.pose).retract(1e-2 * rng.normal(size=6))
+        values = gtsam.Values()
+        values.insert(0, pose)
+        e = fg.smooth_contact_factor(model, g.contacts, g.facets, tol, 0, robust="none").unwhitenedError(values)
+        R, t = pose.rotation().matrix(), pose.translation()
+        p = (g.contacts.points - t) @ R
+        m = corner[g.facets] + np.einsum("nij,nj->ni", M[g.facets], p - model.triangles[g.facets, 0])
+        r = (m / np.linalg.norm(m, axis=1, keepdims=True)) @ R.T + g.contacts.finger_normals
+        sigma = np.hypot(tol.normal_noise, model.normal_roughness[g.facets])
+        np.testing.assert_allclose(e[:9].reshape(3, 3), r / sigma[:, None], rtol=1e-9, atol=1e-12)
+
+
 def test_smooth_contact_factor_jacobian_matches_central_differences():
     """The smooth factor's Jacobian (normal rows interpolated; offset and lateral rows) against
     central differences through Pose3.retract, at poses near random grasps of the ellipsoid."""
@@ -794,6 +837,35 @@ def test_smooth_contact_factor_jacobian_matches_central_differences():
             minus.insert(0, pose.retract(-step))
             numeric[:, c] = (factor.unwhitenedError(plus) - factor.unwhitenedError(minus)) / 2e-7
         np.testing.assert_allclose(A, numeric, rtol=1e-5, atol=1e-5 * np.abs(A).max())
+
+
+def test_smooth_factor_without_place_holds_the_normal_still():
+    """place=False (a track's covariance twin): the normal rows' Jacobian is that of
+    R ν̄ + ñ with ν̄ = n(p) held where the contact is (central differences), and the offset
+    row's is the factor's own."""
+    model, _ = _ellipsoid_model(subdivisions=2)
+    tol = Tolerance.from_noise(0.0025 * model.diameter, 1.0)
+    rng = np.random.default_rng(6)
+    for _ in range(5):
+        g = simulate.grasp(model, rng, n=2, position_noise=tol.position_noise, normal_noise_deg=1.0)
+        data, smooth = fg.smooth_data(model, g.contacts, g.facets, tol)
+        pose = gtsam.Pose3(g.pose).retract(1e-2 * rng.normal(size=6))
+        at = gtsam.Values()
+        at.insert(0, pose)
+        for i, factor in enumerate(fg.reweighted_smooth_factors(data, smooth, tol, "none", False, 0, place=False)):
+            A, _ = factor.linearize(at).jacobian()
+            e0 = factor.unwhitenedError(at)
+            held = pose.rotation().matrix().T @ (e0[:3] / smooth[i, 16] - g.contacts.finger_normals[i])  # ν̄
+
+            def rows(x):
+                values = gtsam.Values()
+                values.insert(0, x)
+                normal = (x.rotation().matrix() @ held + g.contacts.finger_normals[i]) * smooth[i, 16]
+                return np.r_[normal, factor.unwhitenedError(values)[3]]
+
+            numeric = np.stack([(rows(pose.retract(h)) - rows(pose.retract(-h))) / 2e-7 for h in 1e-7 * np.eye(6)], 1)
+            np.testing.assert_allclose(A, numeric, rtol=1e-5, atol=1e-5 * np.abs(A).max())
+            assert np.abs(A[:3, 3:]).max() == 0.0
 
 
 def test_smooth_normals_track_an_ellipsoid_closer_than_facet_normals():

@@ -42,9 +42,9 @@ def _sequence(model, rng, steps, *, noise, slip, per_touch=2):
     return np.stack(truth), touches
 
 
-def _track(model, touches, start, tol, point_to_facet=True):
+def _track(model, touches, start, tol, point_to_facet=True, contact_model="facets"):
     contacts, facets, _ = touches[0]
-    track = PoseTrack(model, contacts, facets, start, tol, point_to_facet=point_to_facet)
+    track = PoseTrack(model, contacts, facets, start, tol, point_to_facet=point_to_facet, contact_model=contact_model)
     for contacts, facets, motion in touches[1:]:
         track.add(contacts, facets, hand_motion=motion)
     return track
@@ -119,16 +119,21 @@ def test_isam2_equals_batch_lm_on_the_same_graph(rock_model, seed, point_to_face
                       for a, b in zip(poses, truth)]) < 2.0
 
 
+@pytest.mark.parametrize("contact_model", ["facets", "auto"])
 @pytest.mark.parametrize("seed", [100, 103, 117])
-def test_isam2_equals_batch_lm_on_a_fine_mesh(seed):
+def test_isam2_equals_batch_lm_on_a_fine_mesh(seed, contact_model):
     """The YCB banana (16,384 facets of ~1.7 mm, σ_x 0.5 mm): most contacts lie beside their
-    triangle, many beside a corner. 30 touches, point-to-facet on: iSAM2 = batch LM to 1e-6
-    (with the scalar r_l, iSAM2 stopped 4.4e-5 and 1.2e-4 short on 100 and 103; on 117,
-    Gauss–Newton steps alone cycle between two trajectories, χ² 2.5 and 19.2 above the
-    optimum, which is why relinearize() takes Dogleg steps)."""
+    triangle, many beside a corner. 30 touches: iSAM2 = batch LM to 1e-6, with facet normals
+    and point-to-facet rows (with the scalar r_l, iSAM2 stopped 4.4e-5 and 1.2e-4 short on 100
+    and 103; on 117, Gauss–Newton steps alone cycle between two trajectories, χ² 2.5 and 19.2
+    above the optimum, which is why relinearize() takes Dogleg steps), and with the default
+    contact model there (smooth normals, no point-to-facet rows)."""
     banana = ObjectModel.from_mesh(objects.load("ycb:011_banana"))
     truth, touches = _sequence(banana, np.random.default_rng(seed), 30, noise=1.0, slip=1.0)
-    _assert_isam2_is_batch(banana, _track(banana, touches, truth[0], _tolerance(banana)))
+    track = _track(banana, touches, truth[0], _tolerance(banana), point_to_facet=None, contact_model=contact_model)
+    assert (track.contact_model, track.point_to_facet) == (("facets", True) if contact_model == "facets"
+                                                          else ("smooth", False))
+    _assert_isam2_is_batch(banana, track)
 
 
 def test_static_touches_are_one_pose(rock_model):
@@ -163,6 +168,40 @@ def test_a_pose_family_needs_a_prior(box_model):
         PoseTrack(box, g.contacts, g.facets, g.pose, tol)
     track = PoseTrack(box, g.contacts, g.facets, g.pose, tol, prior=PosePrior(g.pose, 5.0, 0.01))
     assert np.isfinite(track.covariance).all()
+
+
+def test_auto_contact_model_takes_smooth_normals_where_facets_are_a_few_sigmas_wide(rock_model):
+    """"auto": smooth normals without point-to-facet rows on the YCB banana (median facet
+    radius 2.4 σ_x), facet normals with them on the rock (31 σ_x); the threshold is SMOOTH_BELOW."""
+    from contactpose.solvers.track import SMOOTH_BELOW, resolved_contact_model
+
+    banana = ObjectModel.from_mesh(objects.load("ycb:011_banana"))
+    for model, expected in ((banana, "smooth"), (rock_model, "facets")):
+        tol = _tolerance(model)
+        ratio = np.median(model.facet_radii) / tol.position_noise
+        assert (ratio < SMOOTH_BELOW) == (expected == "smooth")
+        assert resolved_contact_model(model, tol, "auto") == expected
+        g = simulate.grasp(model, np.random.default_rng(1), n=4, position_noise=tol.position_noise, normal_noise_deg=1.0)
+        track = PoseTrack(model, g.contacts, g.facets, g.pose, tol)
+        assert (track.contact_model, track.point_to_facet) == (expected, expected == "facets")
+    with pytest.raises(ContactPoseError, match="contact_model must be one of"):
+        resolved_contact_model(rock_model, _tolerance(rock_model), "smoothed")
+
+
+@pytest.mark.parametrize("contact_model", ["facets", "smooth"])
+def test_touch_score_is_the_graph_error_of_the_touch(rock_model, contact_model):
+    """A touch's χ², taken from one compiled evaluation of its packed contacts, equals twice
+    the GTSAM error of its contact factors (the kernel as reweighting) at the estimate."""
+    rng = np.random.default_rng(9)
+    truth, touches = _sequence(rock_model, rng, 6, noise=1.0, slip=1.0)
+    contacts, facets, _ = touches[0]
+    track = PoseTrack(rock_model, contacts, facets, truth[0], _tolerance(rock_model), contact_model=contact_model)
+    for contacts, facets, motion in touches[1:]:
+        track.add(contacts, hand_motion=motion)
+        at = gtsam.Values()
+        at.insert(len(track.hand) - 1, gtsam.Pose3(np.linalg.inv(track.hand[-1]) @ track.pose))
+        graph_chi2 = 2.0 * sum(track.graph.at(i).error(at) for i in track._slots[-1][1])
+        assert track._last_chi2() == pytest.approx(graph_chi2, rel=1e-12)
 
 
 def test_bad_input_is_named(rock_model):
@@ -243,7 +282,7 @@ def test_tracks_touched_together_equal_tracks_touched_alone(rock_model):
         np.testing.assert_allclose(a.poses, b.poses, atol=1e-12)
         assert a.score == pytest.approx(b.score, rel=1e-12)
     other = PoseTrack(rock, first, facets, starts[0], Tolerance.from_noise(0.005 * rock.diameter, 2.0))
-    with pytest.raises(ContactPoseError, match="share one model and one tolerance"):
+    with pytest.raises(ContactPoseError, match="share one model, one tolerance and one contact model"):
         add_touch([together[0], other], contacts, None)
 
 
@@ -288,7 +327,7 @@ def test_track_contact_factors_cost_what_the_batched_factor_costs(rock_model, co
     moved[0] += 0.05 * rock.diameter * g.contacts.finger_normals[0]  # one contact far off its facet
     contacts = Contacts(moved, g.contacts.finger_normals)
     tol = _tolerance(rock)
-    track = PoseTrack(rock, contacts, g.facets, g.pose, tol, contact_model=contact_model)
+    track = PoseTrack(rock, contacts, g.facets, g.pose, tol, contact_model=contact_model, point_to_facet=True)
     batched = gtsam.NonlinearFactorGraph()
     if contact_model == "smooth":
         batched.add(fg.smooth_contact_factor(rock, contacts, g.facets, tol, key=0))
