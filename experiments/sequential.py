@@ -86,7 +86,7 @@ from contactpose.geometry.sampling import perturb_normals
 from contactpose.model.object_model import merged_mesh
 from contactpose.sim import fingertip, objects
 from contactpose.sim import grasps as simulate
-from contactpose.solvers.track import MAX_TRACKS, PoseTrack, TrackSet, add_touch, checked_motion
+from contactpose.solvers.track import CONTACT_MODELS, MAX_TRACKS, PoseTrack, TrackSet, add_touch, checked_motion
 
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "results" / "sequential"
@@ -425,7 +425,7 @@ def main(argv=None):
     parser.add_argument("--steps", type=int, default=SETTINGS["steps"], help="touches after the first grasp")
     parser.add_argument("--methods", nargs="+", choices=METHODS, default=list(METHODS), help="tracking methods to run")
     parser.add_argument("--max-touches", type=int, default=15, help="active: touches per sequence at most")
-    parser.add_argument("--contact-model", default=SETTINGS["contact_model"], choices=("auto", "facets", "smooth", "surface"),
+    parser.add_argument("--contact-model", default=SETTINGS["contact_model"], choices=CONTACT_MODELS,
                         help="the tracks' contact model (PoseTrack)")
     parser.add_argument("--out", default=str(OUT))
     args = parser.parse_args(argv)

@@ -417,7 +417,7 @@ def reweighted_smooth_factors(data, smooth, tolerance, robust, point_to_facet, k
     reweighting, as :func:`reweighted_contact_factors`. data, smooth : from :func:`smooth_data`;
     place : False drops n(p)'s change with the contact's place from the normal rows' Jacobian
     (∂/∂ω = -R [n]×, ∂/∂v = 0), as for the covariance of a faceted surface, whose normal is
-    constant over a facet (research/tracking.md, "Covariance of a track on a fine mesh").
+    constant over a facet (research/tracking.md, "Smooth normals by default on fine meshes").
     -> [gtsam.CustomFactor] (n)"""
     params = kernel_params(tolerance, "none", point_to_facet)
     noise = reweighted_noise(factor_dim(1, point_to_facet), robust)

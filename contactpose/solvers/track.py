@@ -190,19 +190,18 @@ class PoseTrack:
         per contact with the kernel as reweighting ("facets", "smooth"), or one for the touch
         ("surface", no kernel); ``twin``: those of :attr:`spread` instead (no point-to-facet
         rows; with smooth normals, no place information from the normal:
-        factor_graph.reweighted_smooth_factors). -> [factor]"""
+        factor_graph.reweighted_smooth_factors). -> ([factor], packing: (data, smooth or None)
+        from factor_graph.pack_contacts / smooth_data, or None for "surface")"""
         lateral = self.point_to_facet and not twin
         if self.contact_model == "surface":
-            return [surface_factor(self.model, local, facets, self.tolerance, k)]
+            return [surface_factor(self.model, local, facets, self.tolerance, k)], None
         if self.contact_model == "smooth":
             data, smooth = fg.smooth_data(self.model, local, facets, self.tolerance)
-            if not twin:
-                self._packed = (data, smooth)
-            return fg.reweighted_smooth_factors(data, smooth, self.tolerance, self.robust, lateral, k, place=not twin)
+            factors = fg.reweighted_smooth_factors(data, smooth, self.tolerance, self.robust, lateral, k,
+                                                   place=not twin)
+            return factors, (data, smooth)
         data = fg.pack_contacts(self.model, local, facets)
-        if not twin:
-            self._packed = (data, None)
-        return fg.reweighted_contact_factors(data, self.tolerance, self.robust, lateral, k)
+        return fg.reweighted_contact_factors(data, self.tolerance, self.robust, lateral, k), (data, None)
 
     @property
     def spread(self):
@@ -212,7 +211,8 @@ class PoseTrack:
         graph.push_back(self._others)
         for i, (k, contacts, facets) in enumerate(self.touches):
             if self._twins[i] is None:
-                self._twins[i] = self._factors(contacts.transformed(rigid_inverse(self.hand[k])), facets, k, twin=True)
+                local = contacts.transformed(rigid_inverse(self.hand[k]))
+                self._twins[i] = self._factors(local, facets, k, twin=True)[0]
             for twin in self._twins[i]:
                 graph.add(twin)
         return graph
@@ -220,7 +220,7 @@ class PoseTrack:
     def _swap(self, facets):
         """The last touch's contact factors replaced by those on ``facets``: one iSAM2 update."""
         k, contacts, _ = self.touches[-1]
-        factors = self._factors(self._local, facets, k)
+        factors, self._packed = self._factors(self._local, facets, k)
         slots, at_graph = self._slots[-1]
         new = gtsam.NonlinearFactorGraph()
         for factor, i in zip(factors, at_graph):
@@ -247,7 +247,8 @@ class PoseTrack:
     def _last_chi2(self):
         """χ² (2 · error) of the last touch's contact factors (on the last pose alone) at the
         estimate: Σ 2ρ(s_i) over its contacts, s_i the whitened norm of contact i's rows, from
-        one compiled evaluation of the touch's packed contacts (the "surface" factor: its error)."""
+        one compiled evaluation of the touch's packing (:meth:`_factors`; the "surface" factor:
+        its GTSAM error)."""
         if self.contact_model == "surface":
             at = gtsam.Values()
             at.insert(len(self.hand) - 1, self._last)
@@ -275,7 +276,7 @@ class PoseTrack:
         self.touches.append((k, contacts, facets))
         self._local = contacts.transformed(rigid_inverse(self.hand[k]))  # the touch in the hand frame
         self._twins.append(None)
-        contact_factors = self._factors(self._local, facets, k)
+        contact_factors, self._packed = self._factors(self._local, facets, k)
         for i in range(factors.size()):
             self._others.add(factors.at(i))
             self.graph.add(factors.at(i))
