@@ -90,7 +90,7 @@ from scipy.spatial.transform import Rotation
 
 from contactpose.contacts import Contacts
 from contactpose.errors import ContactPoseError, check_count
-from contactpose.geometry.kernels import closest_point_triangle, fit_cost
+from contactpose.geometry.kernels import closest_point_triangle, fit_cost, normal_misfit
 from contactpose.solvers import residuals as res
 from contactpose.solvers.closed_form import wahba
 from contactpose.types import DEFAULT_REFINE, HypothesisArrays, PosePrior, check_robust, fit_threshold, outlier_penalty
@@ -432,18 +432,18 @@ def _smooth_factor(data, smooth, params, place, key, noise):
 
 
 def smooth_data(model, contacts, facets, tolerance):
-    """The smooth factor's inputs: (pack_contacts data (n, 20), smooth (n, 17): per contact M
-    (9, row-major), a (3), n_a (3), assigned (1.0 or 0.0), 1/√(σ_n² + ρ_f²), ρ_f the facet's
-    normal roughness)."""
+    """The smooth factor's inputs: (pack_contacts data (..., n, 20), smooth (..., n, 17): per
+    contact M (9, row-major), a (3), n_a (3), assigned (1.0 or 0.0), 1/√(σ_n² + ρ_f²), ρ_f the
+    facet's normal roughness). facets : (..., n) int, as for :func:`pack_contacts`."""
     facets = np.asarray(facets)
     safe = np.maximum(facets, 0)
     M, corner = model.smooth_normals
-    smooth = np.empty((len(safe), 17))
-    smooth[:, 0:9] = M[safe].reshape(-1, 9)
-    smooth[:, 9:12] = model.triangles[safe, 0]
-    smooth[:, 12:15] = corner[safe]
-    smooth[:, 15] = facets >= 0
-    smooth[:, 16] = 1.0 / np.hypot(tolerance.normal_noise, model.normal_roughness[safe])
+    smooth = np.empty(facets.shape + (17,))
+    smooth[..., 0:9] = M[safe].reshape(facets.shape + (9,))
+    smooth[..., 9:12] = model.triangles[safe, 0]
+    smooth[..., 12:15] = corner[safe]
+    smooth[..., 15] = facets >= 0
+    smooth[..., 16] = 1.0 / np.hypot(tolerance.normal_noise, model.normal_roughness[safe])
     return pack_contacts(model, contacts, facets), smooth
 
 
@@ -493,6 +493,32 @@ def _smooth_normal_rows(T, data, smooth, place, e, J):
         Dn = (np.eye(3) - np.outer(nu, nu)) @ M / size if place else np.zeros((3, 3))
         J[rows, :3] = R @ (Dn @ _hat(p) - _hat(nu)) * inv_sn  # Dn, the hats: fresh, contiguous
         J[rows, 3:] = -(R @ Dn) * inv_sn
+
+
+def touch_chi2(T, data, params, smooth=None):
+    """χ² = Σ_i 2ρ(s_i) of H tracks' touches, each at its own pose, from one compiled pass: the
+    kernel's rows of :func:`contact_residuals` (``smooth`` None) or of
+    :func:`smooth_contact_residuals` squared and summed (each robust row block has norm
+    g(s) = √(2ρ(s))). T : (H, 4, 4); data : (H, n, 20); params : :func:`kernel_params` with the
+    kernel; smooth : (H, n, 17) or None. -> (H,)"""
+    T = np.ascontiguousarray(T, dtype=np.float64)
+    if smooth is None:
+        return _stacked_chi2(T, data, params, np.zeros(data.shape[:2] + (17,)), False)
+    return _stacked_chi2(T, data, params, smooth, True)
+
+
+@njit(cache=True)
+def _stacked_chi2(T, data, params, smooth, smooth_on):
+    m = data.shape[1] * (6 if params[4] != 0.0 else 4)  # factor_dim
+    e, J = np.empty(m), np.empty((m, 6))
+    out = np.empty(T.shape[0])
+    for h in range(T.shape[0]):
+        if smooth_on:
+            _smooth_rows(T[h], data[h], params, smooth[h], True, e, J)
+        else:
+            _contact_rows(T[h], data[h], params, e, J[:0])
+        out[h] = e @ e
+    return out
 
 
 @njit(cache=True)
@@ -858,7 +884,8 @@ def nearest_fit_facets(model, contacts, pose, tolerance):
     (its centroid's distance - the largest facet radius) from the contact, so one whose centroid
     lies farther than the best candidate's cost, as a distance, plus that radius cannot beat
     it; where the candidates do not reach that far, the contact is scored against every facet
-    within it. The answer is the brute force's either way."""
+    within it (one ball query for all such contacts). The answer is the brute force's either
+    way."""
     poses = np.asarray(pose, dtype=np.float64)
     single = poses.ndim == 2
     poses = poses.reshape(-1, 4, 4)
@@ -868,34 +895,68 @@ def nearest_fit_facets(model, contacts, pose, tolerance):
     p = np.einsum("hij,hci->hcj", R, contacts.points[None] - poses[:, None, :3, 3]).reshape(-1, 3)
     normals = -np.einsum("hij,ci->hcj", R, contacts.finger_normals).reshape(-1, 3)
     weight = (tolerance.position_noise / tolerance.normal_noise) ** 2
-    if len(valid) <= 8 * NEAREST_CANDIDATES:  # a coarse mesh: score every facet
+
+    def scored(points, outward, candidates, found=None, found_cost=None):
+        if found is None:
+            found, found_cost = np.full(len(points), -1), np.full(len(points), np.inf)
+        return _best_fits(points, outward, candidates, model.triangles, model.planes.normals, model.facet_radii,
+                          weight, found, found_cost)
+
+    if len(valid) <= SCORE_ALL_BELOW:  # a coarse mesh: score every facet
         every = np.broadcast_to(valid, (H * n, len(valid)))
-        best, _ = _best_fits(p, normals, every, model.triangles, model.planes.normals, weight)
+        best, _ = scored(p, normals, every)
     else:
         dist, near = tree.query(p, NEAREST_CANDIDATES)
-        best, cost = _best_fits(p, normals, valid[near], model.triangles, model.planes.normals, weight)
+        best, cost = scored(p, normals, valid[near])
         reach = np.sqrt(cost) + radius  # a facet whose centroid lies farther costs more
-        for i in np.flatnonzero(dist[:, -1] < reach):
-            ball = valid[np.asarray(tree.query_ball_point(p[i], reach[i]), dtype=np.int64)][None]
-            best[i] = _best_fits(p[i:i + 1], normals[i:i + 1], ball, model.triangles, model.planes.normals, weight)[0][0]
+        short = np.flatnonzero(dist[:, -1] < reach)
+        if short.size:
+            balls = valid[_padded(tree.query_ball_point(p[short], reach[short]), near[short, 0])]
+            best[short] = scored(p[short], normals[short], balls, best[short], cost[short])[0]
     return best.reshape(n) if single else best.reshape(H, n)
 
 
-#: nearest_fit_facets scores this many facets of nearest centroid before it looks further.
-NEAREST_CANDIDATES = 128
+#: nearest_fit_facets scores this many facets of nearest centroid before it looks further (a
+#: fine mesh's contacts mostly look further, in one ball query: cheaper than more neighbours).
+NEAREST_CANDIDATES = 48
+#: ... and scores every facet of a mesh with at most this many valid facets.
+SCORE_ALL_BELOW = 1024
+
+
+def _padded(lists, fill):
+    """Ragged index lists -> (m, longest) int, row i padded with fill[i] (an index already
+    scored: the least cost is unchanged)."""
+    longest = max(1, max(len(a) for a in lists))
+    out = np.empty((len(lists), longest), dtype=np.int64)
+    for i, a in enumerate(lists):
+        out[i, :len(a)] = a
+        out[i, len(a):] = fill[i]
+    return out
 
 
 @njit(cache=True)
-def _best_fits(p, normals, candidates, triangles, facet_normals, weight):
-    """Each contact's candidate of least fit_cost (the first on a tie). p, normals : (m, 3)
-    object-frame points and outward normals; candidates : (m, K) int; weight : σ_x²/σ_n².
+def _best_fits(p, normals, candidates, triangles, facet_normals, radii, weight, found, found_cost):
+    """Each contact's candidate of least fit_cost (the first on a tie), or its ``found`` facet
+    of cost ``found_cost`` (m,) when no candidate costs less (-1 and inf: none yet). p, normals
+    : (m, 3) object-frame points and outward normals; candidates : (m, K) int; radii : (F,)
+    the facets' radii; weight : σ_x²/σ_n². A candidate whose normal misfit plus (centroid
+    distance - radius)² already reaches the least cost so far is not scored further.
     -> (facets (m,) int, their costs (m,), length²: the whitened cost times σ_x²)"""
     m, K = candidates.shape
     best, cost = np.empty(m, np.int64), np.empty(m)
     for i in range(m):
-        least, pick = np.inf, -1
+        least, pick = found_cost[i], found[i]
         for j in range(K):
             f = candidates[i, j]
+            c = normal_misfit(facet_normals[f], normals[i], weight)
+            if c >= least:
+                continue
+            gap = 0.0
+            for a in range(3):
+                gap += (p[i, a] - (triangles[f, 0, a] + triangles[f, 1, a] + triangles[f, 2, a]) / 3.0) ** 2
+            gap = max(np.sqrt(gap) - radii[f], 0.0)
+            if c + gap * gap >= least:
+                continue
             c = fit_cost(p[i], normals[i], triangles[f], facet_normals[f], weight)
             if c < least:
                 least, pick = c, f

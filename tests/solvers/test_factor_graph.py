@@ -813,6 +813,12 @@ def test_smooth_normal_rows_are_whitened_by_noise_and_roughness():
         r = (m / np.linalg.norm(m, axis=1, keepdims=True)) @ R.T + g.contacts.finger_normals
         sigma = np.hypot(tol.normal_noise, model.normal_roughness[g.facets])
         np.testing.assert_allclose(e[:9].reshape(3, 3), r / sigma[:, None], rtol=1e-9, atol=1e-12)
+        stacked = np.stack([g.facets, np.roll(g.facets, 1)])  # several tracks' facets packed at once
+        data, smooth = fg.smooth_data(model, g.contacts, stacked, tol)
+        for h in range(2):
+            one = fg.smooth_data(model, g.contacts, stacked[h], tol)
+            np.testing.assert_array_equal(data[h], one[0])
+            np.testing.assert_array_equal(smooth[h], one[1])
 
 
 def test_smooth_contact_factor_jacobian_matches_central_differences():

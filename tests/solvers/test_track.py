@@ -190,18 +190,21 @@ def test_auto_contact_model_takes_smooth_normals_where_facets_are_a_few_sigmas_w
 
 @pytest.mark.parametrize("contact_model", ["facets", "smooth"])
 def test_touch_score_is_the_graph_error_of_the_touch(rock_model, contact_model):
-    """A touch's χ², taken from one compiled evaluation of its packed contacts, equals twice
-    the GTSAM error of its contact factors (the kernel as reweighting) at the estimate."""
+    """A touch's χ², taken from one compiled evaluation of its packed contacts (one track, and
+    the tracks of add_touch stacked), equals twice the GTSAM error of its contact factors (the
+    kernel as reweighting) at the estimate; the score grows by it."""
     rng = np.random.default_rng(9)
     truth, touches = _sequence(rock_model, rng, 6, noise=1.0, slip=1.0)
     contacts, facets, _ = touches[0]
     track = PoseTrack(rock_model, contacts, facets, truth[0], _tolerance(rock_model), contact_model=contact_model)
     for contacts, facets, motion in touches[1:]:
+        before = track.score
         track.add(contacts, hand_motion=motion)
         at = gtsam.Values()
         at.insert(len(track.hand) - 1, gtsam.Pose3(np.linalg.inv(track.hand[-1]) @ track.pose))
         graph_chi2 = 2.0 * sum(track.graph.at(i).error(at) for i in track._slots[-1][1])
         assert track._last_chi2() == pytest.approx(graph_chi2, rel=1e-12)
+        assert track.score - before == pytest.approx(graph_chi2, rel=1e-9)
 
 
 def test_bad_input_is_named(rock_model):
@@ -261,17 +264,19 @@ def test_associated_touches_are_a_fixed_point_and_isam2_still_equals_batch(rock_
     np.testing.assert_allclose(track.relinearize(), track.batch(), atol=1e-9)
 
 
-def test_tracks_touched_together_equal_tracks_touched_alone(rock_model):
-    """add_touch over several tracks (one facet search for all) leaves each track where
-    touching it alone does: the same facets at every touch, poses to 1e-12, the same score."""
+@pytest.mark.parametrize("contact_model", ["facets", "smooth"])
+def test_tracks_touched_together_equal_tracks_touched_alone(rock_model, contact_model):
+    """add_touch over several tracks (one facet search, one packing of the contacts and one χ²
+    pass for all) leaves each track where touching it alone does: the same facets at every
+    touch, poses to 1e-12, the same score."""
     rock = rock_model
     rng = np.random.default_rng(41)
     truth, touches = _sequence(rock, rng, 8, noise=1.0, slip=1.0)
     tol = _tolerance(rock)
     first, facets, _ = touches[0]
     starts = [truth[0] @ _motion(rng, 2.0, 0.01 * rock.diameter) for _ in range(4)]
-    together = [PoseTrack(rock, first, facets, s, tol) for s in starts]
-    alone = [PoseTrack(rock, first, facets, s, tol) for s in starts]
+    together = [PoseTrack(rock, first, facets, s, tol, contact_model=contact_model) for s in starts]
+    alone = [PoseTrack(rock, first, facets, s, tol, contact_model=contact_model) for s in starts]
     for contacts, _, motion in touches[1:]:
         add_touch(together, contacts, checked_motion(motion))
         for t in alone:
@@ -282,7 +287,7 @@ def test_tracks_touched_together_equal_tracks_touched_alone(rock_model):
         np.testing.assert_allclose(a.poses, b.poses, atol=1e-12)
         assert a.score == pytest.approx(b.score, rel=1e-12)
     other = PoseTrack(rock, first, facets, starts[0], Tolerance.from_noise(0.005 * rock.diameter, 2.0))
-    with pytest.raises(ContactPoseError, match="share one model, one tolerance and one contact model"):
+    with pytest.raises(ContactPoseError, match="share one model, one tolerance, one contact model"):
         add_touch([together[0], other], contacts, None)
 
 
@@ -343,3 +348,44 @@ def test_track_contact_factors_cost_what_the_batched_factor_costs(rock_model, co
     # smooth normals bend with the contact's place, which Gauss–Newton's model leaves out, and
     # Dogleg's trust radius stops shrinking at 1e-5: relinearize() stalls 1.7e-6 short there
     np.testing.assert_allclose(track.relinearize()[0], best, atol=1e-8 if contact_model == "facets" else 1e-5)
+
+
+def test_reassociation_stops_where_the_facets_hold_or_come_back(monkeypatch):
+    """add_touch's re-association on the YCB banana (smooth normals, where a contact on an edge
+    can push the pose back and forth between two facets): each touch's facets change only to
+    facets not yet tried for it, at most REASSOCIATE times, and end where the association
+    under the final pose holds or names facets already tried. The association is recomputed
+    here by nearest_fit_facets, independently of add_touch's bookkeeping."""
+    from contactpose.solvers import track as track_module
+
+    banana = ObjectModel.from_mesh(objects.load("ycb:011_banana"))
+    rng = np.random.default_rng(17)
+    truth, touches = _sequence(banana, rng, 8, noise=1.0, slip=1.0, per_touch=1)
+    tol = _tolerance(banana)
+    first, facets, _ = touches[0]
+    tracks = [PoseTrack(banana, first, facets, truth[0] @ _motion(rng, 1.0, 0.005 * banana.diameter), tol)
+              for _ in range(6)]
+    assert tracks[0].contact_model == "smooth"
+    swapped = {}
+    original = PoseTrack._swap
+
+    def recording(self, new, packing=None):
+        swapped.setdefault(id(self), []).append(tuple(new))
+        return original(self, new, packing)
+
+    monkeypatch.setattr(PoseTrack, "_swap", recording)
+    cycles = 0
+    for contacts, _, motion in touches[1:]:
+        swapped.clear()
+        starts = {id(t): tuple(fg.nearest_fit_facets(banana, contacts, t._predicted(checked_motion(motion)), tol))
+                  for t in tracks}
+        add_touch(tracks, contacts, checked_motion(motion))
+        for t in tracks:
+            tried = [starts[id(t)]] + swapped.get(id(t), [])
+            assert len(set(tried)) == len(tried)  # no facets twice
+            assert len(tried) - 1 <= track_module.REASSOCIATE
+            assert tuple(t.touches[-1][2]) == tried[-1]
+            now = tuple(t.associate(contacts))
+            assert now == tried[-1] or now in tried or len(tried) - 1 == track_module.REASSOCIATE
+            cycles += now != tried[-1]
+    assert cycles > 0  # the banana's edges do make some touches come back
