@@ -336,10 +336,11 @@ class PoseTrack:
         curvature (factor_graph._optimize): the marginal of :attr:`spread`, or iSAM2's own
         where that leaves directions free. It holds each touch's facets fixed. With smooth
         normals ("auto" on a fine mesh) it takes no place information from the normal, whose
-        facet-to-facet roughness is in its noise. Its 95 % region held the truth in 88.5 % of
-        rock sequences and in 78 % on the YCB banana, where rotation about the long axis is
-        about twice its stated spread: treat it as too small there (research/tracking.md,
-        "Smooth normals by default on fine meshes")."""
+        facet-to-facet roughness is in its noise. Its 95 % region held the truth in 87 % of
+        rock sequences and in 76 % on the YCB banana (facets associated; 92.5 % and 85.5 %
+        with the true facets), where rotation about the long axis is about twice its stated
+        spread: treat it as too small there (research/tracking.md, "Fewer swaps and a cheaper
+        touch")."""
         k = len(self.hand) - 1
         try:
             return gtsam.Marginals(self.spread, self._estimate).marginalCovariance(k)
