@@ -401,12 +401,15 @@ def reweighted_contact_factors(data, tolerance, robust, point_to_facet, key=POSE
 def smooth_contact_factor(model, contacts, facets, tolerance, key=POSE_KEY, point_to_facet=True, robust="huber"):
     """The batched contact factor with each contact's normal residual taken against the
     normal interpolated over its facet from its corners' normals (ObjectModel.smooth_normals)
-    at the contact's place, r_n = R n(p) + ñ, n(p) = m(p)/|m(p)|, p = Rᵀ(x̃ - t), instead of the
-    facet's own normal: on a fine tessellation of a smooth surface the normal then changes
-    continuously from facet to facet. The mesh's own normals stray from n(p) by the facet's
-    ObjectModel.normal_roughness ρ_f, so a contact's normal rows are whitened by
-    √(σ_n² + ρ_f²). The offset and lateral rows are the contact factor's, and so is the
-    per-contact robust kernel. A gtsam.CustomFactor on ``key``."""
+    at the contact's place, n(p) = m(p)/|m(p)|, p = Rᵀ(x̃ - t), instead of the facet's own
+    normal: on a fine tessellation of a smooth surface the normal then changes continuously
+    from facet to facet. The normal rows, in the object frame, are r_n = W_f (n(p) + Rᵀ ñ)
+    (|r_n| is that of R n(p) + ñ whitened in the world), W_f = C_f^(-1/2) with C_f = σ_n² I +
+    S_f + σ_x² Dn Dnᵀ: the sensor's normal noise; the mesh's own normals straying from n(p)
+    (S_f, ObjectModel.normal_scatter); and the contact's position noise along the surface,
+    which moves the place where n is read (Dn at the facet's centroid, :func:`_normal_whitening`).
+    The offset and lateral rows are the contact factor's, and so is the per-contact robust
+    kernel. A gtsam.CustomFactor on ``key``."""
     data, smooth = smooth_data(model, contacts, facets, tolerance)
     return _smooth_factor(data, smooth, kernel_params(tolerance, robust, point_to_facet), True, key,
                           gtsam.noiseModel.Unit.Create(factor_dim(len(data), point_to_facet)))
@@ -416,7 +419,7 @@ def reweighted_smooth_factors(data, smooth, tolerance, robust, point_to_facet, k
     """:func:`smooth_contact_factor` split into one factor per contact, the kernel as GTSAM's
     reweighting, as :func:`reweighted_contact_factors`. data, smooth : from :func:`smooth_data`;
     place : False drops n(p)'s change with the contact's place from the normal rows' Jacobian
-    (∂/∂ω = -R [n]×, ∂/∂v = 0), as for the covariance of a faceted surface, whose normal is
+    (∂/∂ω = W [Rᵀñ]×, ∂/∂v = 0), as for the covariance of a faceted surface, whose normal is
     constant over a facet (research/tracking.md, "Smooth normals by default on fine meshes").
     -> [gtsam.CustomFactor] (n)"""
     params = kernel_params(tolerance, "none", point_to_facet)
@@ -432,19 +435,38 @@ def _smooth_factor(data, smooth, params, place, key, noise):
 
 
 def smooth_data(model, contacts, facets, tolerance):
-    """The smooth factor's inputs: (pack_contacts data (..., n, 20), smooth (..., n, 17): per
-    contact M (9, row-major), a (3), n_a (3), assigned (1.0 or 0.0), 1/√(σ_n² + ρ_f²), ρ_f the
-    facet's normal roughness). facets : (..., n) int, as for :func:`pack_contacts`."""
+    """The smooth factor's inputs: (pack_contacts data (..., n, 20), smooth (..., n, 25): per
+    contact M (9, row-major), a (3), n_a (3), assigned (1.0 or 0.0), W_f (9, row-major) of
+    :func:`_normal_whitening`). facets : (..., n) int, as for :func:`pack_contacts`."""
     facets = np.asarray(facets)
     safe = np.maximum(facets, 0)
     M, corner = model.smooth_normals
-    smooth = np.empty(facets.shape + (17,))
+    smooth = np.empty(facets.shape + (25,))
     smooth[..., 0:9] = M[safe].reshape(facets.shape + (9,))
     smooth[..., 9:12] = model.triangles[safe, 0]
     smooth[..., 12:15] = corner[safe]
     smooth[..., 15] = facets >= 0
-    smooth[..., 16] = 1.0 / np.hypot(tolerance.normal_noise, model.normal_roughness[safe])
+    smooth[..., 16:25] = _normal_whitening(model, tolerance)[safe].reshape(facets.shape + (9,))
     return pack_contacts(model, contacts, facets), smooth
+
+
+def _normal_whitening(model, tolerance):
+    """(m, 3, 3) per facet W = C^(-1/2), C = σ_n² I + S_f + σ_x² Dn Dnᵀ: the smooth normal
+    rows' covariance in the object frame, S_f the facet's ObjectModel.normal_scatter, and Dn
+    the smooth normal's change with place at the facet's centroid, which turns the contact's
+    position noise along the surface into normal noise. Cached per (σ_n, σ_x)."""
+    cache = model.__dict__.setdefault("_normal_whitening", {})
+    key = (float(tolerance.normal_noise), float(tolerance.position_noise))
+    if key not in cache:
+        M, corner = model.smooth_normals
+        m = corner + np.einsum("fij,fj->fi", M, model.centroids - model.triangles[:, 0])
+        size = np.linalg.norm(m, axis=1)
+        nu = m / size[:, None]
+        Dn = (np.eye(3) - nu[:, :, None] * nu[:, None, :]) @ M / size[:, None, None]
+        C = key[0] ** 2 * np.eye(3) + model.normal_scatter + key[1] ** 2 * Dn @ np.swapaxes(Dn, 1, 2)
+        values, vectors = np.linalg.eigh(C)
+        cache[key] = np.einsum("fij,fj,fkj->fik", vectors, 1.0 / np.sqrt(values), vectors)
+    return cache[key]
 
 
 def smooth_contact_residuals(T, data, params, smooth, place=True):
@@ -471,10 +493,10 @@ def _smooth_rows(T, data, params, smooth, place, e, J):
 
 @njit(cache=True)
 def _smooth_normal_rows(T, data, smooth, place, e, J):
-    """Overwrite the 3n normal rows of e and J with r_n = R n(p) + ñ, n = m/|m|, m = n_a + M (p - a),
-    p = Rᵀ(x̃ - t), whitened by 1/√(σ_n² + ρ_f²) (smooth: from :func:`smooth_data`):
-    ∂/∂ω = R(-[n]× + Dn [p]×), ∂/∂v = -R Dn, Dn = (I - n nᵀ) M / |m|; without ``place``, Dn = 0
-    in the Jacobian."""
+    """Overwrite the 3n normal rows of e and J with r_n = W (n(p) + Rᵀ ñ), n = m/|m|,
+    m = n_a + M (p - a), p = Rᵀ(x̃ - t) (smooth: from :func:`smooth_data`):
+    ∂/∂ω = W (Dn [p]× + [Rᵀñ]×), ∂/∂v = -W Dn, Dn = (I - n nᵀ) M / |m|; without ``place``,
+    Dn = 0 in the Jacobian."""
     R, t = np.ascontiguousarray(T[:3, :3]), T[:3, 3].copy()
     Rt = np.ascontiguousarray(R.T)
     for i in range(data.shape[0]):
@@ -484,15 +506,22 @@ def _smooth_normal_rows(T, data, smooth, place, e, J):
             J[rows] = 0.0
             continue
         M = smooth[i, 0:9].copy().reshape((3, 3))
-        inv_sn = smooth[i, 16]
+        W = smooth[i, 16:25].copy().reshape((3, 3))
         p = Rt @ (data[i, 13:16] - t)
+        w = Rt @ data[i, 16:19].copy()
         m = smooth[i, 12:15] + M @ (p - smooth[i, 9:12])
         size = np.sqrt(m @ m)
         nu = m / size
-        e[rows] = (R @ nu + data[i, 16:19]) * inv_sn
+        e[rows] = W @ (nu + w)
         Dn = (np.eye(3) - np.outer(nu, nu)) @ M / size if place else np.zeros((3, 3))
-        J[rows, :3] = R @ (Dn @ _hat(p) - _hat(nu)) * inv_sn  # Dn, the hats: fresh, contiguous
-        J[rows, 3:] = -(R @ Dn) * inv_sn
+        J[rows, :3] = W @ (Dn @ _hat(p) + _hat(w))  # Dn, the hats: fresh, contiguous
+        J[rows, 3:] = -(W @ Dn)
+
+
+@njit(cache=True)
+def _hat(v):
+    """[v]× of one vector (3,) -> (3, 3), inside compiled kernels (geometry.metrics.skew outside)."""
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
 def touch_chi2(T, data, params, smooth=None):
@@ -500,10 +529,10 @@ def touch_chi2(T, data, params, smooth=None):
     kernel's rows of :func:`contact_residuals` (``smooth`` None) or of
     :func:`smooth_contact_residuals` squared and summed (each robust row block has norm
     g(s) = √(2ρ(s))). T : (H, 4, 4); data : (H, n, 20); params : :func:`kernel_params` with the
-    kernel; smooth : (H, n, 17) or None. -> (H,)"""
+    kernel; smooth : (H, n, 25) or None. -> (H,)"""
     T = np.ascontiguousarray(T, dtype=np.float64)
     if smooth is None:
-        return _stacked_chi2(T, data, params, np.zeros(data.shape[:2] + (17,)), False)
+        return _stacked_chi2(T, data, params, np.zeros(data.shape[:2] + (25,)), False)
     return _stacked_chi2(T, data, params, smooth, True)
 
 
@@ -519,12 +548,6 @@ def _stacked_chi2(T, data, params, smooth, smooth_on):
             _contact_rows(T[h], data[h], params, e, J[:0])
         out[h] = e @ e
     return out
-
-
-@njit(cache=True)
-def _hat(v):
-    """[v]× of one vector (3,) -> (3, 3), inside compiled kernels (geometry.metrics.skew outside)."""
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
 def _smooth_error(data, params, smooth, place, e, J, key, this, values, H):

@@ -29,9 +29,10 @@ research/tracking.md, "Gauss–Newton steps").
 
 On a fine tessellation (facets a few sensor sigmas wide, such as the YCB meshes) a contact's
 facet is ambiguous, and the default contact model ("auto") is then the smooth one: the normal
-interpolated over the facet, its noise widened by the mesh's roughness about it, no
-point-to-facet rows, so that a contact slides from facet to facet (research/tracking.md,
-"Smooth normals by default on fine meshes").
+interpolated over the facet, its noise widened by the mesh's roughness about it and by the
+contact's position noise along the surface, no point-to-facet rows, so that a contact slides
+from facet to facet (research/tracking.md, "Smooth normals by default on fine meshes", "The
+contact's place noise in the smooth normal").
 """
 
 from __future__ import annotations
@@ -336,11 +337,11 @@ class PoseTrack:
         curvature (factor_graph._optimize): the marginal of :attr:`spread`, or iSAM2's own
         where that leaves directions free. It holds each touch's facets fixed. With smooth
         normals ("auto" on a fine mesh) it takes no place information from the normal, whose
-        facet-to-facet roughness is in its noise. Its 95 % region held the truth in 87 % of
-        rock sequences and in 76 % on the YCB banana (facets associated; 92.5 % and 85.5 %
-        with the true facets), where rotation about the long axis is about twice its stated
-        spread: treat it as too small there (research/tracking.md, "Fewer swaps and a cheaper
-        touch")."""
+        facet-to-facet roughness is in its noise. Its 95 % region held the truth in 92.5 % of
+        rock sequences and 91.5 % on the YCB banana with the true facets, but only in 87.0 %
+        and 82.5 % with the facets that the track associated, which it holds fixed: treat it
+        as somewhat too small then (research/tracking.md, "The contact's place noise in the
+        smooth normal")."""
         k = len(self.hand) - 1
         try:
             return gtsam.Marginals(self.spread, self._estimate).marginalCovariance(k)

@@ -773,9 +773,10 @@ def test_smooth_normals_follow_the_surface_and_keep_creases():
 
 
 def test_normal_roughness_matches_dense_sampling():
-    """ObjectModel.normal_roughness (a quadrature rule) against the root mean square angle
-    between the facet's normal and the smooth normal at 4,000 uniform points of each of 40
-    facets of the coarse ellipsoid, per axis (÷√2); on the box, all creases, it is 0."""
+    """ObjectModel.normal_scatter (a quadrature rule) against the mean of d dᵀ, d the facet's
+    normal minus the smooth normal, and normal_roughness against the root mean square angle
+    between them per axis (÷√2), at 4,000 uniform points of each of 40 facets of the coarse
+    ellipsoid; on the box, all creases, both are 0."""
     from contactpose.model.object_model import ObjectModel
     from contactpose.sim import objects
 
@@ -790,13 +791,19 @@ def test_normal_roughness_matches_dense_sampling():
         cos = m @ model.planes.normals[f] / np.linalg.norm(m, axis=1)
         reference = np.sqrt(np.mean(np.arccos(np.clip(cos, -1, 1)) ** 2) / 2)
         assert model.normal_roughness[f] == pytest.approx(reference, rel=0.02)
+        d = model.planes.normals[f] - m / np.linalg.norm(m, axis=1, keepdims=True)
+        scatter = d.T @ d / len(d)
+        np.testing.assert_allclose(model.normal_scatter[f], scatter, atol=0.05 * np.abs(scatter).max())
     box = ObjectModel.from_mesh(objects.load("box"))
     np.testing.assert_allclose(box.normal_roughness, 0.0, atol=1e-12)
+    np.testing.assert_allclose(box.normal_scatter, 0.0, atol=1e-24)
 
 
 def test_smooth_normal_rows_are_whitened_by_noise_and_roughness():
-    """The smooth factor's normal rows equal (R n(p) + ñ)/√(σ_n² + ρ_f²), computed here from
-    smooth_normals and normal_roughness, at random grasps of the coarse ellipsoid."""
+    """The smooth factor's normal rows r satisfy |r|² = uᵀ C⁻¹ u, u = n(p) + Rᵀñ, C = σ_n² I
+    + S_f + σ_x² Dn Dnᵀ (the facet's normal scatter; Dn the smooth normal's change with place
+    at the centroid, by central differences here), at random grasps of the coarse ellipsoid;
+    |r| is that of R u whitened by R C Rᵀ in the world, and r = W u with W symmetric."""
     model, _ = _ellipsoid_model(subdivisions=2)
     tol = Tolerance.from_noise(0.0025 * model.diameter, 1.0)
     M, corner = model.smooth_normals
@@ -810,9 +817,21 @@ def test_smooth_normal_rows_are_whitened_by_noise_and_roughness():
         R, t = pose.rotation().matrix(), pose.translation()
         p = (g.contacts.points - t) @ R
         m = corner[g.facets] + np.einsum("nij,nj->ni", M[g.facets], p - model.triangles[g.facets, 0])
-        r = (m / np.linalg.norm(m, axis=1, keepdims=True)) @ R.T + g.contacts.finger_normals
-        sigma = np.hypot(tol.normal_noise, model.normal_roughness[g.facets])
-        np.testing.assert_allclose(e[:9].reshape(3, 3), r / sigma[:, None], rtol=1e-9, atol=1e-12)
+        u = m / np.linalg.norm(m, axis=1, keepdims=True) + g.contacts.finger_normals @ R
+        rows = e[:9].reshape(3, 3)
+        for i, f in enumerate(g.facets):
+            def smooth_normal(q, f=f):
+                v = corner[f] + M[f] @ (q - model.triangles[f, 0])
+                return v / np.linalg.norm(v)
+
+            c = model.triangles[f].mean(axis=0)
+            Dn = np.stack([(smooth_normal(c + h) - smooth_normal(c - h)) / 2e-7 for h in 1e-7 * np.eye(3)], axis=1)
+            cov = tol.normal_noise**2 * np.eye(3) + model.normal_scatter[f] + tol.position_noise**2 * Dn @ Dn.T
+            assert rows[i] @ rows[i] == pytest.approx(u[i] @ np.linalg.solve(cov, u[i]), rel=1e-6)
+            assert rows[i] @ rows[i] == pytest.approx((R @ u[i]) @ np.linalg.solve(R @ cov @ R.T, R @ u[i]), rel=1e-6)
+            W = fg.smooth_data(model, g.contacts, g.facets, tol)[1][i, 16:25].reshape(3, 3)
+            np.testing.assert_allclose(W, W.T, atol=1e-12)
+            np.testing.assert_allclose(rows[i], W @ u[i], rtol=1e-9, atol=1e-12)
         stacked = np.stack([g.facets, np.roll(g.facets, 1)])  # several tracks' facets packed at once
         data, smooth = fg.smooth_data(model, g.contacts, stacked, tol)
         for h in range(2):
@@ -847,7 +866,7 @@ def test_smooth_contact_factor_jacobian_matches_central_differences():
 
 def test_smooth_factor_without_place_holds_the_normal_still():
     """place=False (a track's covariance twin): the normal rows' Jacobian is that of
-    R ν̄ + ñ with ν̄ = n(p) held where the contact is (central differences), and the offset
+    W (ν̄ + Rᵀñ) with ν̄ = n(p) held where the contact is (central differences), and the offset
     row's is the factor's own."""
     model, _ = _ellipsoid_model(subdivisions=2)
     tol = Tolerance.from_noise(0.0025 * model.diameter, 1.0)
@@ -861,12 +880,13 @@ def test_smooth_factor_without_place_holds_the_normal_still():
         for i, factor in enumerate(fg.reweighted_smooth_factors(data, smooth, tol, "none", False, 0, place=False)):
             A, _ = factor.linearize(at).jacobian()
             e0 = factor.unwhitenedError(at)
-            held = pose.rotation().matrix().T @ (e0[:3] / smooth[i, 16] - g.contacts.finger_normals[i])  # ν̄
+            W = smooth[i, 16:25].reshape(3, 3)
+            held = np.linalg.solve(W, e0[:3]) - pose.rotation().matrix().T @ g.contacts.finger_normals[i]  # ν̄
 
             def rows(x):
                 values = gtsam.Values()
                 values.insert(0, x)
-                normal = (x.rotation().matrix() @ held + g.contacts.finger_normals[i]) * smooth[i, 16]
+                normal = W @ (held + x.rotation().matrix().T @ g.contacts.finger_normals[i])
                 return np.r_[normal, factor.unwhitenedError(values)[3]]
 
             numeric = np.stack([(rows(pose.retract(h)) - rows(pose.retract(-h))) / 2e-7 for h in 1e-7 * np.eye(6)], 1)
