@@ -487,6 +487,24 @@ class ObjectModel:
         axis, √(trace / 2) (radians, as a normal noise σ_n is; median 1.18° on the YCB banana)."""
         return np.sqrt(np.trace(self.normal_scatter, axis1=1, axis2=2) / 2.0)
 
+    def normal_whitening(self, normal_noise, position_noise):
+        """(m, 3, 3) per facet W = C^(-1/2), C = σ_n² I + S_f + σ_x² Dn Dnᵀ: the covariance of the
+        smooth contact model's normal rows (object frame), S_f the facet's :attr:`normal_scatter`
+        and Dn = ∂n/∂p the smooth normal's change with place at the facet's centroid, which turns
+        the contact's position noise along the surface into normal noise. Cached per (σ_n, σ_x)."""
+        cache = self.__dict__.setdefault("_normal_whitening", {})
+        key = (float(normal_noise), float(position_noise))
+        if key not in cache:
+            M, corner = self.smooth_normals
+            m = corner + np.einsum("fij,fj->fi", M, self.centroids - self.triangles[:, 0])
+            size = np.linalg.norm(m, axis=1)
+            nu = m / size[:, None]
+            Dn = (np.eye(3) - nu[:, :, None] * nu[:, None, :]) @ M / size[:, None, None]
+            C = key[0] ** 2 * np.eye(3) + self.normal_scatter + key[1] ** 2 * Dn @ np.swapaxes(Dn, 1, 2)
+            values, vectors = np.linalg.eigh(C)
+            cache[key] = np.einsum("fij,fj,fkj->fik", vectors, 1.0 / np.sqrt(values), vectors)
+        return cache[key]
+
     @cached_property
     def centroid_tree(self):
         """(scipy cKDTree over the valid facets' centroids, those facets (F,) int, their largest

@@ -315,16 +315,6 @@ def factor_dim(n, point_to_facet):
     return n * (6 if point_to_facet else 4)
 
 
-def contact_norms(e, n):
-    """Each contact's whitened norm s_i from the error e (m,) of n contacts' rows without a
-    robust kernel (the layout of :func:`_contact_rows`: 3n normal, n offset, 2n lateral rows
-    when present). -> (n,)"""
-    s2 = np.sum(e[:3 * n].reshape(n, 3) ** 2, axis=1) + e[3 * n:4 * n] ** 2
-    if len(e) > 4 * n:
-        s2 += np.sum(e[4 * n:].reshape(n, 2) ** 2, axis=1)
-    return np.sqrt(s2)
-
-
 def lateral_norms(e, n):
     """r_l / σ_x of each contact (its two lateral rows' norm) from the error e (6n,) of a
     factor with point-to-facet rows and no robust kernel. -> (n,)"""
@@ -407,7 +397,7 @@ def smooth_contact_factor(model, contacts, facets, tolerance, key=POSE_KEY, poin
     (|r_n| is that of R n(p) + ñ whitened in the world), W_f = C_f^(-1/2) with C_f = σ_n² I +
     S_f + σ_x² Dn Dnᵀ: the sensor's normal noise; the mesh's own normals straying from n(p)
     (S_f, ObjectModel.normal_scatter); and the contact's position noise along the surface,
-    which moves the place where n is read (Dn at the facet's centroid, :func:`_normal_whitening`).
+    which moves the place where n is read (Dn at the facet's centroid, ObjectModel.normal_whitening).
     The offset and lateral rows are the contact factor's, and so is the per-contact robust
     kernel. A gtsam.CustomFactor on ``key``."""
     data, smooth = smooth_data(model, contacts, facets, tolerance)
@@ -437,7 +427,7 @@ def _smooth_factor(data, smooth, params, place, key, noise):
 def smooth_data(model, contacts, facets, tolerance):
     """The smooth factor's inputs: (pack_contacts data (..., n, 20), smooth (..., n, 25): per
     contact M (9, row-major), a (3), n_a (3), assigned (1.0 or 0.0), W_f (9, row-major) of
-    :func:`_normal_whitening`). facets : (..., n) int, as for :func:`pack_contacts`."""
+    ObjectModel.normal_whitening). facets : (..., n) int, as for :func:`pack_contacts`."""
     facets = np.asarray(facets)
     safe = np.maximum(facets, 0)
     M, corner = model.smooth_normals
@@ -446,37 +436,9 @@ def smooth_data(model, contacts, facets, tolerance):
     smooth[..., 9:12] = model.triangles[safe, 0]
     smooth[..., 12:15] = corner[safe]
     smooth[..., 15] = facets >= 0
-    smooth[..., 16:25] = _normal_whitening(model, tolerance)[safe].reshape(facets.shape + (9,))
+    W = model.normal_whitening(tolerance.normal_noise, tolerance.position_noise)
+    smooth[..., 16:25] = W[safe].reshape(facets.shape + (9,))
     return pack_contacts(model, contacts, facets), smooth
-
-
-def _normal_whitening(model, tolerance):
-    """(m, 3, 3) per facet W = C^(-1/2), C = σ_n² I + S_f + σ_x² Dn Dnᵀ: the smooth normal
-    rows' covariance in the object frame, S_f the facet's ObjectModel.normal_scatter, and Dn
-    the smooth normal's change with place at the facet's centroid, which turns the contact's
-    position noise along the surface into normal noise. Cached per (σ_n, σ_x)."""
-    cache = model.__dict__.setdefault("_normal_whitening", {})
-    key = (float(tolerance.normal_noise), float(tolerance.position_noise))
-    if key not in cache:
-        M, corner = model.smooth_normals
-        m = corner + np.einsum("fij,fj->fi", M, model.centroids - model.triangles[:, 0])
-        size = np.linalg.norm(m, axis=1)
-        nu = m / size[:, None]
-        Dn = (np.eye(3) - nu[:, :, None] * nu[:, None, :]) @ M / size[:, None, None]
-        C = key[0] ** 2 * np.eye(3) + model.normal_scatter + key[1] ** 2 * Dn @ np.swapaxes(Dn, 1, 2)
-        values, vectors = np.linalg.eigh(C)
-        cache[key] = np.einsum("fij,fj,fkj->fik", vectors, 1.0 / np.sqrt(values), vectors)
-    return cache[key]
-
-
-def smooth_contact_residuals(T, data, params, smooth, place=True):
-    """The smooth factor's error (m,) and Jacobian (m, 6) at a pose T (4, 4): see
-    :func:`smooth_contact_factor`; smooth : from :func:`smooth_data`; place : as for
-    :func:`reweighted_smooth_factors`."""
-    m = factor_dim(len(data), params[4] != 0.0)
-    e, J = np.empty(m), np.empty((m, 6))
-    _smooth_rows(np.ascontiguousarray(T, dtype=np.float64), data, params, smooth, place, e, J)
-    return e, J
 
 
 @njit(cache=True)
@@ -526,8 +488,8 @@ def _hat(v):
 
 def touch_chi2(T, data, params, smooth=None):
     """χ² = Σ_i 2ρ(s_i) of H tracks' touches, each at its own pose, from one compiled pass: the
-    kernel's rows of :func:`contact_residuals` (``smooth`` None) or of
-    :func:`smooth_contact_residuals` squared and summed (each robust row block has norm
+    kernel's rows of :func:`contact_residuals` (``smooth`` None) or of the smooth factor
+    (:func:`_smooth_rows`) squared and summed (each robust row block has norm
     g(s) = √(2ρ(s))). T : (H, 4, 4); data : (H, n, 20); params : :func:`kernel_params` with the
     kernel; smooth : (H, n, 25) or None. -> (H,)"""
     T = np.ascontiguousarray(T, dtype=np.float64)

@@ -276,10 +276,6 @@ class PoseTrack:
         estimate: Σ 2ρ(s_i) over its contacts, s_i the whitened norm of contact i's rows, from
         one compiled evaluation of the touch's packing (:meth:`_factors`; the "surface" factor:
         its GTSAM error)."""
-        if self.contact_model == "surface":
-            at = gtsam.Values()
-            at.insert(len(self.hand) - 1, self._last)
-            return 2.0 * sum(self.graph.at(i).error(at) for i in self._slots[-1][1])
         return float(_touch_chi2([self])[0])
 
     def _update(self, factors, values, contacts, facets, hand=None, score=True, local=None, packing=None):
@@ -529,10 +525,16 @@ def _touch_chi2(tracks):
     contact model, one touch size) in one compiled pass (factor_graph.touch_chi2). -> (H,)"""
     first = tracks[0]
     if first.contact_model == "surface":
-        return np.array([t._last_chi2() for t in tracks])
+        return np.array([_surface_chi2(t) for t in tracks])
     params = fg.kernel_params(first.tolerance, first.robust, first.point_to_facet)
     T = np.stack([t._last.matrix() for t in tracks])
     data = np.stack([t._packed[0] for t in tracks])
     smooth = None if first._packed[1] is None else np.stack([t._packed[1] for t in tracks])
     return fg.touch_chi2(T, data, params, smooth)
 
+
+def _surface_chi2(track):
+    """χ² (2 · error) of a "surface" track's last touch: its factor's GTSAM error at the estimate."""
+    at = gtsam.Values()
+    at.insert(len(track.hand) - 1, track._last)
+    return 2.0 * sum(track.graph.at(i).error(at) for i in track._slots[-1][1])
