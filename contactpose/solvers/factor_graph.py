@@ -91,6 +91,7 @@ from scipy.spatial.transform import Rotation
 from contactpose.contacts import Contacts
 from contactpose.errors import ContactPoseError, check_count
 from contactpose.geometry.kernels import closest_point_triangle, fit_cost, normal_misfit
+from contactpose.geometry.metrics import skew
 from contactpose.solvers import residuals as res
 from contactpose.solvers.closed_form import wahba
 from contactpose.types import DEFAULT_REFINE, HypothesisArrays, PosePrior, check_robust, fit_threshold, outlier_penalty
@@ -860,10 +861,12 @@ def _contact_chi2(model, contacts, facets, poses, tolerance, point_to_facet):
     return res.whitened_cost(r_n, r_o, r_l, tolerance.normal_noise, tolerance.position_noise)
 
 
-def nearest_fit_facets(model, contacts, pose, tolerance):
+def nearest_fit_facets(model, contacts, pose, tolerance, pose_covariance=None):
     """Each contact's best facet under a pose: least whitened point-to-triangle distance²
     plus normal residual². pose : (4, 4) -> (n,) int, or (H, 4, 4) -> (H, n) int, the poses
-    searched together in one pass (valid facets only).
+    searched together in one pass (valid facets only). pose_covariance : None, or the poses'
+    (6, 6) / (H, 6, 6) covariance (rotation first, right perturbation), whose spread of each
+    contact's object-frame point and normal joins the sensor's (:func:`association_weights`).
 
     The NEAREST_CANDIDATES facets of nearest centroid are scored first. A facet lies at least
     (its centroid's distance - the largest facet radius) from the contact, so one whose centroid
@@ -879,13 +882,13 @@ def nearest_fit_facets(model, contacts, pose, tolerance):
     R = poses[:, :3, :3]  # object-frame points and outward normals, (H·n, 3), pose by pose
     p = np.einsum("hij,hci->hcj", R, contacts.points[None] - poses[:, None, :3, 3]).reshape(-1, 3)
     normals = -np.einsum("hij,ci->hcj", R, contacts.finger_normals).reshape(-1, 3)
-    weight = (tolerance.position_noise / tolerance.normal_noise) ** 2
+    weight = association_weights(p.reshape(H, n, 3), normals.reshape(H, n, 3), tolerance, pose_covariance).reshape(-1)
 
-    def scored(points, outward, candidates, found=None, found_cost=None):
+    def scored(points, outward, candidates, found=None, found_cost=None, weights=weight):
         if found is None:
             found, found_cost = np.full(len(points), -1), np.full(len(points), np.inf)
         return _best_fits(points, outward, candidates, model.triangles, model.planes.normals, model.facet_radii,
-                          weight, found, found_cost)
+                          weights, found, found_cost)
 
     if len(valid) <= SCORE_ALL_BELOW:  # a coarse mesh: score every facet
         every = np.broadcast_to(valid, (H * n, len(valid)))
@@ -897,8 +900,28 @@ def nearest_fit_facets(model, contacts, pose, tolerance):
         short = np.flatnonzero(dist[:, -1] < reach)
         if short.size:
             balls = valid[_padded(tree.query_ball_point(p[short], reach[short]), near[short, 0])]
-            best[short] = scored(p[short], normals[short], balls, best[short], cost[short])[0]
+            best[short] = scored(p[short], normals[short], balls, best[short], cost[short], weight[short])[0]
     return best.reshape(n) if single else best.reshape(H, n)
+
+
+def association_weights(p, normals, tolerance, pose_covariance=None):
+    """Each contact's weight w = σ_p²/σ_r² of its normal misfit in the fit to a facet
+    (geometry.kernels.fit_cost): σ_p² = σ_x² plus the mean variance per axis of its object-frame
+    point p under the pose's uncertainty, σ_r² = σ_n² plus that of its normal n per tangent
+    axis; without a covariance, σ_x²/σ_n². A pose perturbed by ξ = (ω, v) on the right moves
+    p by [p]× ω - v and n by [n]× ω, so a predicted pose a slip away, whose point errs by
+    millimetres while its normal errs by about a degree, leans on the normal to pick the facet
+    (research/tracking.md, "Association under the pose's uncertainty").
+    p, normals : (H, n, 3) object frame; pose_covariance : None, (6, 6) or (H, 6, 6). -> (H, n)"""
+    base = (tolerance.position_noise / tolerance.normal_noise) ** 2
+    if pose_covariance is None:
+        return np.full(p.shape[:2], base)
+    P = np.broadcast_to(np.asarray(pose_covariance, dtype=np.float64), (len(p), 6, 6))
+    Jp = np.concatenate([skew(p), np.broadcast_to(-np.eye(3), p.shape + (3,))], axis=-1)  # (H, n, 3, 6)
+    point_var = np.einsum("hcij,hjk,hcik->hc", Jp, P, Jp) / 3.0
+    Jn = skew(normals)
+    normal_var = np.einsum("hcij,hjk,hcik->hc", Jn, P[:, :3, :3], Jn) / 2.0
+    return (tolerance.position_noise ** 2 + point_var) / (tolerance.normal_noise ** 2 + normal_var)
 
 
 #: nearest_fit_facets scores this many facets of nearest centroid before it looks further (a
@@ -924,7 +947,7 @@ def _best_fits(p, normals, candidates, triangles, facet_normals, radii, weight, 
     """Each contact's candidate of least fit_cost (the first on a tie), or its ``found`` facet
     of cost ``found_cost`` (m,) when no candidate costs less (-1 and inf: none yet). p, normals
     : (m, 3) object-frame points and outward normals; candidates : (m, K) int; radii : (F,)
-    the facets' radii; weight : σ_x²/σ_n². A candidate whose normal misfit plus (centroid
+    the facets' radii; weight : (m,) each contact's σ_x²/σ_n² (association_weights). A candidate whose normal misfit plus (centroid
     distance - radius)² already reaches the least cost so far is not scored further.
     -> (facets (m,) int, their costs (m,), length²: the whitened cost times σ_x²)"""
     m, K = candidates.shape
@@ -933,7 +956,7 @@ def _best_fits(p, normals, candidates, triangles, facet_normals, radii, weight, 
         least, pick = found_cost[i], found[i]
         for j in range(K):
             f = candidates[i, j]
-            c = normal_misfit(facet_normals[f], normals[i], weight)
+            c = normal_misfit(facet_normals[f], normals[i], weight[i])
             if c >= least:
                 continue
             gap = 0.0
@@ -942,7 +965,7 @@ def _best_fits(p, normals, candidates, triangles, facet_normals, radii, weight, 
             gap = max(np.sqrt(gap) - radii[f], 0.0)
             if c + gap * gap >= least:
                 continue
-            c = fit_cost(p[i], normals[i], triangles[f], facet_normals[f], weight)
+            c = fit_cost(p[i], normals[i], triangles[f], facet_normals[f], weight[i])
             if c < least:
                 least, pick = c, f
         best[i], cost[i] = pick, least

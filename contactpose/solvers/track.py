@@ -70,6 +70,18 @@ SMOOTH_BELOW = 8.0
 #: the updated pose, and the touch's factor is swapped while that changes to facets not yet
 #: tried for the touch (a cycle keeps the last swap), at most this often.
 REASSOCIATE = 5
+#: Trajectories drawn by PoseTrack.association_covariance, by default.
+ASSOCIATION_SAMPLES = 20
+#: ... each solved by LM from the smoothed estimate with these settings.
+ASSOCIATION_LM = dict(max_iterations=30, relative_tol=1e-8, absolute_tol=1e-10)
+#: The contact models whose tracks associate a touch under their pose's uncertainty
+#: (factor_graph.association_weights): those with one normal per facet, whose neighbours'
+#: normals differ by degrees. With smooth normals the neighbours' residuals differ by
+#: micrometres and hundredths of a degree, the weighting changed nothing measurable (YCB
+#: tracking +0.03° ± 0.015°, coverage within its noise) and cost 1 ms per touch of 20 tracks.
+UNCERTAIN_ASSOCIATION = ("facets",)
+#: A touch's new pose takes at most this many further iSAM2 updates (PoseTrack._settle).
+SETTLE_STEPS = 3
 PRUNE_CHI2 = 38.26
 MERGE_DEG = 2.0
 MERGE_FRAC = 0.02
@@ -144,6 +156,7 @@ class PoseTrack:
         self.initial = gtsam.Values()
         self.touches = []  # (pose variable k, Contacts in the world, facets (n,)) of every touch
         self._slots = []  # per touch: its contact factors' indices in iSAM2 and in graph
+        self._associated = []  # per touch: were its facets associated by the track (add_touch)?
         self.score = 0.0  # Σ over touches of the touch's contact χ² just after its update
         self.isam = _isam2(trust_region=self.contact_model == "surface")
         factors, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
@@ -169,7 +182,9 @@ class PoseTrack:
         if facets is None:
             add_touch([self], contacts, motion)
         else:
-            self._step(contacts, self._checked(contacts, facets), motion, score=True)
+            self._step(contacts, self._checked(contacts, facets), motion, score=False)
+            self._settle()
+            self.score += self._last_chi2()
         return self.pose
 
     def _checked(self, contacts, facets):
@@ -260,9 +275,42 @@ class PoseTrack:
         self._refresh()
 
     def _refresh(self):
-        """After an update: the last pose's estimate now, every pose's when asked (:attr:`_estimate`)."""
-        self._full = None
+        """After an update: the last pose's estimate now, every pose's and the last pose's
+        covariance when asked (:attr:`_estimate`, :meth:`_uncertainty`)."""
+        self._full = self._spread_now = None
         self._last = self.isam.calculateEstimatePose3(len(self.hand) - 1)
+
+    def _settle(self):
+        """Further iSAM2 updates (at most SETTLE_STEPS) while the last pose has stepped farther
+        from its linearization point (the prediction, for a new pose) than the relinearization
+        threshold: each relinearizes it, so that the touch's contact factors, and their robust weights, are
+        taken near the estimate rather than at the prediction, a slip away (research/tracking.md,
+        "A second step for the new pose"). Gauss–Newton tracks only: a "surface" track's iSAM2
+        relinearizes whatever moved at every update."""
+        if self.contact_model == "surface":
+            return
+        for _ in range(SETTLE_STEPS):
+            if np.abs(self.isam.getDelta().at(len(self.hand) - 1)).max() < TRACK_RELINEARIZE:
+                return
+            self.isam.update()
+            self._refresh()
+
+    def _uncertainty(self, motion=None):
+        """(6, 6) the last pose's covariance as iSAM2 holds it (its own linearization), plus
+        the slip's when the hand moves on (``motion``), under which a touch's contacts take
+        their facets (factor_graph.association_weights); zero where the touches so far leave
+        directions free. None for smooth normals, whose facets differ too little for it to
+        matter (:data:`UNCERTAIN_ASSOCIATION`)."""
+        if self.contact_model not in UNCERTAIN_ASSOCIATION:
+            return None
+        if self._spread_now is None:
+            try:
+                self._spread_now = self.isam.marginalCovariance(len(self.hand) - 1)
+            except RuntimeError:
+                self._spread_now = np.zeros((6, 6))
+        if motion is None:
+            return self._spread_now
+        return self._spread_now + np.diag(motion[1].sigmas() ** 2)
 
     @property
     def _estimate(self):
@@ -286,6 +334,7 @@ class PoseTrack:
             self.hand.append(hand)
         k = len(self.hand) - 1
         self.touches.append((k, contacts, facets))
+        self._associated.append(False)
         self._local = contacts.transformed(rigid_inverse(self.hand[k])) if local is None else local
         self._twins.append(None)
         contact_factors, self._packed = self._factors(self._local, facets, k, packing=packing)
@@ -308,8 +357,9 @@ class PoseTrack:
             self.score += self._last_chi2()
 
     def associate(self, contacts):
-        """Each contact's best-fitting facet under the current smoothed pose. -> (n,) int"""
-        return fg.nearest_fit_facets(self.model, contacts, self.pose, self.tolerance)
+        """Each contact's best-fitting facet under the current smoothed pose (and its
+        uncertainty, as a touch's association weighs it). -> (n,) int"""
+        return fg.nearest_fit_facets(self.model, contacts, self.pose, self.tolerance, self._uncertainty())
 
     def _y(self, k):
         return (self._last if k == len(self.hand) - 1 else self._estimate.atPose3(k)).matrix()
@@ -333,16 +383,64 @@ class PoseTrack:
         curvature (factor_graph._optimize): the marginal of :attr:`spread`, or iSAM2's own
         where that leaves directions free. It holds each touch's facets fixed. With smooth
         normals ("auto" on a fine mesh) it takes no place information from the normal, whose
-        facet-to-facet roughness is in its noise. Its 95 % region held the truth in 92.5 % of
-        rock sequences and 91.5 % on the YCB banana with the true facets, but only in 87.0 %
-        and 82.5 % with the facets that the track associated, which it holds fixed: treat it
-        as somewhat too small then (research/tracking.md, "The contact's place noise in the
-        smooth normal")."""
+        facet-to-facet roughness is in its noise. Its 95 % region held the truth in 93.5 % of
+        rock and YCB banana sequences with the true facets, and in 92.0 % and 83.0 % with the
+        facets that the track associated, which it holds fixed: where the track chose its
+        facets, :meth:`association_covariance` also carries their uncertainty (92.0 % on the
+        banana; research/tracking.md, "A covariance that carries the association")."""
         k = len(self.hand) - 1
         try:
             return gtsam.Marginals(self.spread, self._estimate).marginalCovariance(k)
         except RuntimeError:
             return self.isam.marginalCovariance(k)
+
+    def association_covariance(self, rng, samples=ASSOCIATION_SAMPLES):
+        """(6, 6) covariance of the last pose that also carries the association: :attr:`covariance`
+        plus the mean of δ δᵀ over ``samples`` trajectories drawn from the joint covariance of all
+        poses (the marginal of :attr:`spread`). Under each, every touch whose facets the track
+        associated takes its best-fitting facets again (factor_graph.nearest_fit_facets), and δ
+        is the last pose's move (tangent of Y_K) from the smoothed estimate to the optimum of the
+        graph on those facets, solved by LM from the estimate (ASSOCIATION_LM): where the optimum
+        lies under the associations that the pose's uncertainty allows, about the estimate. :attr:`covariance` holds the facets fixed, but
+        they were taken under the estimate, whose error they then keep (YCB banana: 95 % region
+        92 % against 83 %; research/tracking.md, "A covariance that carries the association").
+        rng : numpy.random.Generator; 0.1–0.16 s for 20 samples of 11 poses."""
+        if not isinstance(rng, np.random.Generator):
+            raise ContactPoseError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
+        check_count(samples, "samples", minimum=1)
+        K, estimate = len(self.hand), self._estimate
+        keys = gtsam.KeyVector(list(range(K)))
+        try:
+            joint = gtsam.Marginals(self.spread, estimate).jointMarginalCovariance(keys).fullMatrix()
+        except RuntimeError:
+            joint = self.isam.jointMarginalCovariance(keys).fullMatrix()
+        draws = rng.multivariate_normal(np.zeros(6 * K), joint, size=samples, method="eigh")
+        own = None
+        moves = np.empty((samples, 6))
+        for s, xi in enumerate(draws):
+            drawn = [self.hand[k] @ estimate.atPose3(k).retract(xi[6 * k:6 * k + 6]).matrix() for k in range(K)]
+            graph = self._reassociated(drawn, joint)
+            if graph is None:
+                own = _optimum_move(self.graph, estimate, K - 1) if own is None else own
+            moves[s] = own if graph is None else _optimum_move(graph, estimate, K - 1)
+        return self.covariance + moves.T @ moves / samples
+
+    def _reassociated(self, poses, joint):
+        """The graph with every associated touch on its best-fitting facets under ``poses``
+        (K, 4, 4) (under the poses' uncertainty, the diagonal blocks of ``joint``, where the
+        track's association weighs it), or None when no facet changes."""
+        graph, changed = gtsam.NonlinearFactorGraph(), False
+        graph.push_back(self._others)
+        for (k, contacts, facets), associated in zip(self.touches, self._associated):
+            if associated:
+                uncertain = self.contact_model in UNCERTAIN_ASSOCIATION
+                again = fg.nearest_fit_facets(self.model, contacts, poses[k], self.tolerance,
+                                              joint[6 * k:6 * k + 6, 6 * k:6 * k + 6] if uncertain else None)
+                changed |= bool((again != facets).any())
+                facets = again
+            for factor in self._factors(contacts.transformed(rigid_inverse(self.hand[k])), facets, k)[0]:
+                graph.add(factor)
+        return graph if changed else None
 
     def seen_now(self):
         """Every touch's contacts as the object at its current pose would carry them (each moved
@@ -481,7 +579,8 @@ def add_touch(tracks, contacts, motion):
            for t in tracks):
         raise ContactPoseError("tracks touched together must share one model, one tolerance, one contact model, "
                                "one point-to-facet setting and one robust kernel")
-    facets = fg.nearest_fit_facets(model, contacts, np.stack([t._predicted(motion) for t in tracks]), tolerance)
+    facets = fg.nearest_fit_facets(model, contacts, np.stack([t._predicted(motion) for t in tracks]), tolerance,
+                                   _stacked([t._uncertainty(motion) for t in tracks]))
     hands, local = [t._hand_after(motion) for t in tracks], {}
     for h in hands:  # the touch in each hand frame, once per distinct hand pose
         if h.tobytes() not in local:
@@ -489,10 +588,12 @@ def add_touch(tracks, contacts, motion):
     locals_ = [local[h.tobytes()] for h in hands]
     for t, f, here, packing in zip(tracks, facets, locals_, _packings(tracks, locals_, facets)):
         t._step(contacts, f, motion, score=False, local=here, packing=packing)
+        t._associated[-1] = True
     pending = list(tracks)
     tried = {id(t): {tuple(f)} for t, f in zip(tracks, facets)}
     for _ in range(REASSOCIATE):
-        again = fg.nearest_fit_facets(model, contacts, np.stack([t.pose for t in pending]), tolerance)
+        again = fg.nearest_fit_facets(model, contacts, np.stack([t.pose for t in pending]), tolerance,
+                                      _stacked([t._uncertainty() for t in pending]))
         changed = [(t, f) for t, f in zip(pending, again) if tuple(f) not in tried[id(t)]]
         packings = _packings([t for t, _ in changed], [t._local for t, _ in changed], [f for _, f in changed])
         for (t, f), packing in zip(changed, packings):
@@ -501,8 +602,22 @@ def add_touch(tracks, contacts, motion):
         pending = [t for t, _ in changed]
         if not pending:
             break
+    for t in tracks:
+        t._settle()
     for t, chi2 in zip(tracks, _touch_chi2(tracks)):
         t.score += chi2
+
+
+def _optimum_move(graph, values, key):
+    """(6,) the move of the Pose3 ``key`` (its tangent) from ``values`` to the optimum of
+    ``graph`` that LM reaches from there."""
+    solved = gtsam.LevenbergMarquardtOptimizer(graph, values, fg.lm_params(**ASSOCIATION_LM)).optimize()
+    return values.atPose3(key).localCoordinates(solved.atPose3(key))
+
+
+def _stacked(covariances):
+    """(H, 6, 6) of the tracks' association covariances, or None when they have none."""
+    return None if covariances[0] is None else np.stack(covariances)
 
 
 def _packings(tracks, locals_, facets):

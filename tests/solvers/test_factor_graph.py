@@ -718,11 +718,13 @@ def test_nearest_fit_facets_is_the_brute_force_minimum(name):
     tol = Tolerance.from_noise(0.0025 * d, 1.0)
     valid = np.flatnonzero(model.planes.valid)
 
-    def brute_force(contacts, T):
+    def brute_force(contacts, T, weight=None):
         p = (contacts.points - T[:3, 3]) @ T[:3, :3]
         dist = point_triangle_distance(np.repeat(p, len(valid), 0), np.tile(model.triangles[valid], (contacts.n, 1, 1)))
         r_n = model.planes.normals[valid] @ T[:3, :3].T + contacts.finger_normals[:, None]
-        cost = dist.reshape(contacts.n, -1) ** 2 / tol.position_noise**2 + np.sum(r_n**2, axis=2) / tol.normal_noise**2
+        if weight is None:
+            weight = np.full(contacts.n, (tol.position_noise / tol.normal_noise) ** 2)
+        cost = dist.reshape(contacts.n, -1) ** 2 + weight[:, None] * np.sum(r_n**2, axis=2)
         return valid[np.argmin(cost, axis=1)]
 
     for _ in range(30):
@@ -733,6 +735,42 @@ def test_nearest_fit_facets_is_the_brute_force_minimum(name):
         truth = np.stack([brute_force(g.contacts, T) for T in poses])
         np.testing.assert_array_equal(fg.nearest_fit_facets(model, g.contacts, poses[0], tol), truth[0])
         np.testing.assert_array_equal(fg.nearest_fit_facets(model, g.contacts, poses, tol), truth)
+        # under pose uncertainty (association_weights, tested below): each contact its own weight
+        P = _random_covariance(rng, sigma_rot=np.radians(2.0), sigma_trans=0.01 * d, n=4)
+        R, t = poses[:, :3, :3], poses[:, :3, 3]
+        p = np.einsum("hij,hci->hcj", R, g.contacts.points[None] - t[:, None])
+        n = -np.einsum("hij,ci->hcj", R, g.contacts.finger_normals)
+        weights = fg.association_weights(p, n, tol, P)
+        truth = np.stack([brute_force(g.contacts, T, w) for T, w in zip(poses, weights)])
+        np.testing.assert_array_equal(fg.nearest_fit_facets(model, g.contacts, poses, tol, P), truth)
+
+
+def _random_covariance(rng, sigma_rot, sigma_trans, n):
+    """(n, 6, 6) random covariances, rotation first, about sigma_rot and sigma_trans per axis."""
+    A = rng.normal(size=(n, 6, 6)) * np.r_[np.full(3, sigma_rot), np.full(3, sigma_trans)][:, None] / np.sqrt(6)
+    return A @ np.swapaxes(A, 1, 2)
+
+
+def test_association_weights_are_the_sampled_spread_of_point_and_normal():
+    """σ_p²/σ_r² of each contact under a pose's uncertainty, against 200,000 sampled right
+    perturbations X Exp(ξ), ξ ~ N(0, P) (object-frame point Exp(ξ)⁻¹ p, normal R_ξᵀ n): the
+    mean variance per axis of the point (plus σ_x²) over that per tangent axis of the normal
+    (plus σ_n²), to sampling error; and σ_x²/σ_n² without a covariance."""
+    rng = np.random.default_rng(3)
+    tol = Tolerance.from_noise(0.0005, 1.0)
+    p = rng.normal(scale=0.05, size=(1, 5, 3))
+    n = rng.normal(size=(1, 5, 3))
+    n /= np.linalg.norm(n, axis=2, keepdims=True)
+    np.testing.assert_allclose(fg.association_weights(p, n, tol), (0.0005 / np.radians(1.0)) ** 2)
+    P = _random_covariance(rng, sigma_rot=np.radians(1.5), sigma_trans=0.002, n=1)[0]
+    xi = rng.multivariate_normal(np.zeros(6), P, size=200_000)
+    R = Rotation.from_rotvec(xi[:, :3]).as_matrix()
+    moved = np.einsum("sji,scj->sci", R, p[0][None] - xi[:, None, 3:])  # R_ξᵀ (p - v)
+    turned = np.einsum("sji,cj->sci", R, n[0])
+    point_var = moved.var(axis=0).sum(axis=1) / 3.0
+    normal_var = turned.var(axis=0).sum(axis=1) / 2.0
+    sampled = (tol.position_noise**2 + point_var) / (tol.normal_noise**2 + normal_var)
+    np.testing.assert_allclose(fg.association_weights(p, n, tol, P)[0], sampled, rtol=0.02)
 
 
 @functools.lru_cache(maxsize=2)

@@ -78,6 +78,25 @@ def test_associated_facets_track_the_truth(rock_model):
     np.testing.assert_allclose(track.relinearize(), truth, atol=1e-8 * rock.diameter)
 
 
+def test_a_touch_ends_linearized_near_its_estimate(rock_model):
+    """After each touch the new pose's contact factors are linearized within the
+    relinearization threshold of its estimate, though a slip of 3° takes the first step from
+    the prediction past it in many touches (the second step, PoseTrack._settle), with the
+    facets given and associated."""
+    from contactpose.solvers import track as trackmod
+
+    rock = rock_model
+    for seed in range(6):
+        truth, touches = _sequence(rock, np.random.default_rng(300 + seed), 8, noise=1.0, slip=3.0)
+        for given in (True, False):
+            contacts, facets, _ = touches[0]
+            track = PoseTrack(rock, contacts, facets, truth[0], _tolerance(rock))
+            for contacts, facets, motion in touches[1:]:
+                track.add(contacts, facets if given else None, hand_motion=motion)
+                step = np.abs(track.isam.getDelta().at(len(track.hand) - 1))
+                assert step.max() < trackmod.TRACK_RELINEARIZE
+
+
 def test_single_contact_touches(rock_model):
     """One contact per touch, facets associated: noise-free touches give the true trajectory,
     and noisy ones (slip of 1° and 1 % of the diameter a touch) stay within a few degrees."""
@@ -262,6 +281,62 @@ def test_associated_touches_are_a_fixed_point_and_isam2_still_equals_batch(rock_
         fixed += np.array_equal(track.associate(contacts), track.touches[-1][2])
     assert fixed >= 11
     np.testing.assert_allclose(track.relinearize(), track.batch(), atol=1e-9)
+
+
+def test_association_covariance_is_the_laplace_one_where_nothing_was_associated(rock_model):
+    """Every touch's facets given and the trajectory converged: no facet to take again and no
+    step left, so the association covariance is the covariance. Bad samples or rng are named."""
+    rock = rock_model
+    truth, touches = _sequence(rock, np.random.default_rng(51), 6, noise=1.0, slip=1.0)
+    track = _track(rock, touches, truth[0], _tolerance(rock))
+    track.relinearize()
+    np.testing.assert_allclose(track.association_covariance(np.random.default_rng(0), 5), track.covariance,
+                               rtol=1e-9, atol=1e-20)
+    with pytest.raises(ContactPoseError, match="rng"):
+        track.association_covariance(0)
+    with pytest.raises(ContactPoseError, match="samples"):
+        track.association_covariance(np.random.default_rng(0), 0)
+
+
+@pytest.mark.parametrize("contact_model", ["facets", "auto"])
+def test_association_covariance_adds_where_lm_puts_the_reassociated_optimum(contact_model):
+    """One drawn trajectory: the association covariance less the covariance is δ δᵀ, δ the
+    last pose's move to the optimum of the graph whose associated touches take their facets
+    under the drawn poses. Against the same draw re-associated here and solved by LM to
+    convergence from the track's converged estimate, to 1e-3 of δ δᵀ."""
+    from contactpose.solvers import track as trackmod
+    from contactpose.solvers.track import rigid_inverse
+
+    banana = ObjectModel.from_mesh(objects.load("ycb:011_banana"))
+    tol = _tolerance(banana)
+    moved = 0
+    for seed in range(4):
+        truth, touches = _sequence(banana, np.random.default_rng(60 + seed), 6, noise=1.0, slip=1.0)
+        contacts, facets, _ = touches[0]
+        track = PoseTrack(banana, contacts, facets, truth[0], tol, contact_model=contact_model)
+        for contacts, _, motion in touches[1:]:
+            track.add(contacts, hand_motion=motion)
+        track.relinearize()
+        K, estimate = len(track.hand), track._estimate
+        added = track.association_covariance(np.random.default_rng(seed), 1) - track.covariance
+        joint = gtsam.Marginals(track.spread, estimate).jointMarginalCovariance(gtsam.KeyVector(list(range(K)))).fullMatrix()
+        xi = np.random.default_rng(seed).multivariate_normal(np.zeros(6 * K), joint, size=1, method="eigh")[0]
+        graph = gtsam.NonlinearFactorGraph()
+        graph.push_back(track._others)
+        for i, (k, contacts, facets) in enumerate(track.touches):
+            if i > 0:
+                drawn = track.hand[k] @ estimate.atPose3(k).retract(xi[6 * k:6 * k + 6]).matrix()
+                uncertain = joint[6 * k:6 * k + 6, 6 * k:6 * k + 6] if track.contact_model in trackmod.UNCERTAIN_ASSOCIATION else None
+                facets = fg.nearest_fit_facets(banana, contacts, drawn, tol, uncertain)
+            for factor in track._factors(contacts.transformed(rigid_inverse(track.hand[k])), facets, k)[0]:
+                graph.add(factor)
+        params = fg.lm_params(max_iterations=200, relative_tol=1e-12, absolute_tol=1e-16)
+        solved = gtsam.LevenbergMarquardtOptimizer(graph, estimate, params).optimize()
+        delta = estimate.atPose3(K - 1).localCoordinates(solved.atPose3(K - 1))
+        size = np.linalg.norm(delta)
+        moved += size > 1e-6
+        np.testing.assert_allclose(added, np.outer(delta, delta), atol=1e-3 * size**2 + 1e-16)
+    assert moved >= 2
 
 
 @pytest.mark.parametrize("contact_model", ["facets", "smooth"])
