@@ -911,7 +911,7 @@ def association_weights(p, normals, tolerance, pose_covariance=None):
     axis; without a covariance, σ_x²/σ_n². A pose perturbed by ξ = (ω, v) on the right moves
     p by [p]× ω - v and n by [n]× ω, so a predicted pose a slip away, whose point errs by
     millimetres while its normal errs by about a degree, leans on the normal to pick the facet
-    (research/tracking.md, "Association under the pose's uncertainty").
+    (research/tracking.md, "A covariance that carries the association").
     p, normals : (H, n, 3) object frame; pose_covariance : None, (6, 6) or (H, 6, 6). -> (H, n)"""
     base = (tolerance.position_noise / tolerance.normal_noise) ** 2
     if pose_covariance is None:
@@ -947,8 +947,9 @@ def _best_fits(p, normals, candidates, triangles, facet_normals, radii, weight, 
     """Each contact's candidate of least fit_cost (the first on a tie), or its ``found`` facet
     of cost ``found_cost`` (m,) when no candidate costs less (-1 and inf: none yet). p, normals
     : (m, 3) object-frame points and outward normals; candidates : (m, K) int; radii : (F,)
-    the facets' radii; weight : (m,) each contact's σ_x²/σ_n² (association_weights). A candidate whose normal misfit plus (centroid
-    distance - radius)² already reaches the least cost so far is not scored further.
+    the facets' radii; weight : (m,) each contact's σ_x²/σ_n² (association_weights). A
+    candidate whose normal misfit plus (centroid distance - radius)² already reaches the least
+    cost so far is not scored further.
     -> (facets (m,) int, their costs (m,), length²: the whitened cost times σ_x²)"""
     m, K = candidates.shape
     best, cost = np.empty(m, np.int64), np.empty(m)

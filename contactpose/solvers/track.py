@@ -283,10 +283,10 @@ class PoseTrack:
     def _settle(self):
         """Further iSAM2 updates (at most SETTLE_STEPS) while the last pose has stepped farther
         from its linearization point (the prediction, for a new pose) than the relinearization
-        threshold: each relinearizes it, so that the touch's contact factors, and their robust weights, are
-        taken near the estimate rather than at the prediction, a slip away (research/tracking.md,
-        "A second step for the new pose"). Gauss–Newton tracks only: a "surface" track's iSAM2
-        relinearizes whatever moved at every update."""
+        threshold: each relinearizes it, so that the touch's contact factors, and their robust
+        weights, are taken near the estimate rather than at the prediction, a slip away
+        (research/tracking.md, "A covariance that carries the association"). Gauss–Newton
+        tracks only: a "surface" track's iSAM2 relinearizes whatever moved at every update."""
         if self.contact_model == "surface":
             return
         for _ in range(SETTLE_STEPS):
@@ -400,10 +400,11 @@ class PoseTrack:
         poses (the marginal of :attr:`spread`). Under each, every touch whose facets the track
         associated takes its best-fitting facets again (factor_graph.nearest_fit_facets), and δ
         is the last pose's move (tangent of Y_K) from the smoothed estimate to the optimum of the
-        graph on those facets, solved by LM from the estimate (ASSOCIATION_LM): where the optimum
-        lies under the associations that the pose's uncertainty allows, about the estimate. :attr:`covariance` holds the facets fixed, but
-        they were taken under the estimate, whose error they then keep (YCB banana: 95 % region
-        92 % against 83 %; research/tracking.md, "A covariance that carries the association").
+        graph on those facets, solved by LM from the estimate (ASSOCIATION_LM): where the
+        optimum lies under the associations that the pose's uncertainty allows, about the
+        estimate. :attr:`covariance` holds the facets fixed, but they were taken under the
+        estimate, whose error they then keep (YCB banana: 95 % region 92 % against 83 %;
+        research/tracking.md, "A covariance that carries the association").
         rng : numpy.random.Generator; 0.1–0.16 s for 20 samples of 11 poses."""
         if not isinstance(rng, np.random.Generator):
             raise ContactPoseError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
@@ -415,14 +416,10 @@ class PoseTrack:
         except RuntimeError:
             joint = self.isam.jointMarginalCovariance(keys).fullMatrix()
         draws = rng.multivariate_normal(np.zeros(6 * K), joint, size=samples, method="eigh")
-        own = None
-        moves = np.empty((samples, 6))
-        for s, xi in enumerate(draws):
-            drawn = [self.hand[k] @ estimate.atPose3(k).retract(xi[6 * k:6 * k + 6]).matrix() for k in range(K)]
-            graph = self._reassociated(drawn, joint)
-            if graph is None:
-                own = _optimum_move(self.graph, estimate, K - 1) if own is None else own
-            moves[s] = own if graph is None else _optimum_move(graph, estimate, K - 1)
+        graphs = [self._reassociated([self.hand[k] @ estimate.atPose3(k).retract(xi[6 * k:6 * k + 6]).matrix()
+                                      for k in range(K)], joint) for xi in draws]
+        own = _optimum_move(self.graph, estimate, K - 1) if any(g is None for g in graphs) else None
+        moves = np.array([own if g is None else _optimum_move(g, estimate, K - 1) for g in graphs])
         return self.covariance + moves.T @ moves / samples
 
     def _reassociated(self, poses, joint):
