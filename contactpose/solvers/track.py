@@ -420,7 +420,7 @@ class PoseTrack:
                                       for k in range(K)], joint) for xi in draws]
         own = _optimum_move(self.graph, estimate, K - 1) if any(g is None for g in graphs) else None
         moves = np.array([own if g is None else _optimum_move(g, estimate, K - 1) for g in graphs])
-        return self.covariance + moves.T @ moves / samples
+        return joint[-6:, -6:] + moves.T @ moves / samples  # the last pose's block: :attr:`covariance`
 
     def _reassociated(self, poses, joint):
         """The graph with every associated touch on its best-fitting facets under ``poses``
@@ -428,9 +428,9 @@ class PoseTrack:
         track's association weighs it), or None when no facet changes."""
         graph, changed = gtsam.NonlinearFactorGraph(), False
         graph.push_back(self._others)
+        uncertain = self.contact_model in UNCERTAIN_ASSOCIATION
         for (k, contacts, facets), associated in zip(self.touches, self._associated):
             if associated:
-                uncertain = self.contact_model in UNCERTAIN_ASSOCIATION
                 again = fg.nearest_fit_facets(self.model, contacts, poses[k], self.tolerance,
                                               joint[6 * k:6 * k + 6, 6 * k:6 * k + 6] if uncertain else None)
                 changed |= bool((again != facets).any())
