@@ -253,6 +253,7 @@ class HypothesisList(Sequence):
     def __init__(self, arrays):
         self.arrays = arrays
         self.samples = {}  # rank -> PoseSamples, filled by localize(..., samples=N)
+        self.sample_covariances = {}  # rank -> (6, 6) without samples (a held TouchSession's association covariance)
 
     def __len__(self):
         return len(self.arrays.cost)
@@ -272,7 +273,7 @@ class HypothesisList(Sequence):
             covariance=None if a.covariance is None else a.covariance[i],
             probability=None if a.probability is None else float(a.probability[i]),
             samples=self.samples.get(i),
-            sample_covariance=None if i not in self.samples else self.samples[i].covariance,
+            sample_covariance=self.samples[i].covariance if i in self.samples else self.sample_covariances.get(i),
         )
 
 

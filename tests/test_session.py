@@ -88,17 +88,24 @@ def test_tree_of_other_contacts_or_noise_is_refused(rock_model):
 def test_session_refuses_options_it_sets(rock_model):
     with pytest.raises(ContactPoseError, match="tree"):
         TouchSession(rock_model, tree=None)
+    with pytest.raises(ContactPoseError, match="association_samples"):
+        TouchSession(rock_model, association_samples=-1)
+    with pytest.raises(ContactPoseError, match="needs rng"):
+        TouchSession(rock_model, association_samples=5, rng=0)
 
 
 def test_held_session_is_the_track_set(rock_model):
     """A held object: after a static first grasp, touches with hand motions give the poses of a
-    TrackSet driven by hand with the same touches, track for track."""
+    TrackSet driven by hand with the same touches, track for track; the best track's association
+    covariance (drawn from the same stream) is its sample_covariance, which exceeds the
+    covariance by a positive semidefinite term."""
     rng = np.random.default_rng(9)
     d = rock_model.diameter
     g = simulate.grasp(rock_model, rng, n=4, position_noise=NOISE * d, normal_noise_deg=1.0)
-    session = TouchSession(rock_model, **_noise(rock_model))
+    session = TouchSession(rock_model, association_samples=4, rng=np.random.default_rng(5), **_noise(rock_model))
     first = session.add(g.contacts)
     tracks = TrackSet(rock_model, g.contacts, [(h.facets, h.pose) for h in first.hypotheses], session.tolerance)
+    draws = np.random.default_rng(5)
     X = g.pose
     for _ in range(6):
         delta = _motion(rng, 10.0, 0.05 * d)
@@ -111,6 +118,10 @@ def test_held_session_is_the_track_set(rock_model):
         for h, t in zip(r.hypotheses, tracks.tracks):
             np.testing.assert_allclose(h.pose, t.pose, atol=1e-12)
             assert h.cost == pytest.approx(t.score)
+        spread = tracks.best.association_covariance(draws, 4)
+        np.testing.assert_allclose(r.best.sample_covariance, spread, rtol=1e-9, atol=1e-20)
+        assert np.linalg.eigvalsh(spread - r.best.covariance).min() >= -1e-9 * np.abs(spread).max()
+        assert all(h.sample_covariance is None for h in r.hypotheses[1:])
     assert r.status in ("ok", "ambiguous") and r.best.facets.shape == (4 + 12,)
     assert np.degrees(np.arccos(np.clip((np.trace(r.best.pose[:3, :3].T @ X[:3, :3]) - 1) / 2, -1, 1))) < 5.0
     with pytest.raises(ContactPoseError, match="static"):

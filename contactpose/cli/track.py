@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
-from contactpose.cli.common import add_noise_options, add_parser, model_or_mesh
-from contactpose.errors import ContactPoseError
+import numpy as np
+
+from contactpose.cli.common import add_noise_options, add_parser, model_or_mesh, warn_in_vain
+from contactpose.errors import ContactPoseError, check_count
 from contactpose.geometry.metrics import rotation_error_deg, translation_error
 from contactpose.io import jsonfiles, output
 from contactpose.localize import localize
@@ -22,6 +24,10 @@ def register(subparsers):
                         '"sigma_trans": b}, "true_pose": 4x4}, ...]}; step 0 is the first grasp')
     add_noise_options(p)
     p.add_argument("--max-tracks", type=int, default=MAX_TRACKS, metavar="N", help="tracks kept")
+    p.add_argument("--association-samples", type=int, default=0, metavar="N",
+                   help="write each final track's association covariance from N drawn trajectories (the Laplace "
+                        "covariance plus the spread that the choice of facets adds; 20 is the default of the API)")
+    p.add_argument("--seed", type=int, metavar="S", help="seed for --association-samples (default: a fresh one)")
     p.add_argument("-o", "--output", metavar="OUT.json", help="write the trajectory and the tracks as JSON")
     p.add_argument("--plot", metavar="OUT.png", help="plot the pose error over the steps (needs true_pose)")
     p.set_defaults(func=run)
@@ -29,6 +35,9 @@ def register(subparsers):
 
 def run(args):
     """Track, print a line per step; 0 on success."""
+    check_count(args.association_samples, "--association-samples", minimum=0)
+    if args.seed is not None and not args.association_samples:
+        warn_in_vain("--seed", "without --association-samples")
     model = model_or_mesh(args.model)
     steps = jsonfiles.read_sequence(args.sequence)
     first, _, truth = steps[0]
@@ -47,7 +56,10 @@ def run(args):
         print(f"step {r['step']}: {r['tracks']} track(s), t = [{', '.join(f'{x:.4g}' for x in r['pose'][0:3, 3])}]"
               + err)
     if args.output:
-        jsonfiles.write_json(args.output, output.track_dict(result.status, rows, tracks))
+        rng = np.random.default_rng(args.seed)
+        spread = ([t.association_covariance(rng, args.association_samples) for t in tracks.tracks]
+                  if args.association_samples else None)
+        jsonfiles.write_json(args.output, output.track_dict(result.status, rows, tracks, spread))
     if args.plot:
         _plot(rows, args.plot)
     return 0

@@ -19,6 +19,8 @@ from __future__ import annotations
 import json
 from importlib import resources
 
+import numpy as np
+
 from contactpose.types import SCHEMA_VERSION
 
 SCHEMA_KINDS = ("result", "touch", "scan_report", "bench", "track")
@@ -59,20 +61,24 @@ def next_touch_dict(result, touch):
     }
 
 
-def track_dict(status, rows, tracks):
+def track_dict(status, rows, tracks, association=None):
     """The track JSON: the first grasp's localize status, the best track's pose at every step
     (with its error where the sequence gives the true pose), and the tracks left at the end.
 
-    rows : [dict(step, pose (4, 4), tracks, score, rot_err_deg, trans_err)]; tracks : TrackSet.
+    rows : [dict(step, pose (4, 4), tracks, score, rot_err_deg, trans_err)]; tracks : TrackSet;
+    association : None, or each final track's association covariance (6, 6), written as its
+    ``association_covariance``.
     """
+    finals = [{"pose": t.pose.tolist(), "score": t.score, "covariance": t.covariance.tolist()} for t in tracks.tracks]
+    for final, spread in zip(finals, association or []):
+        final["association_covariance"] = np.asarray(spread).tolist()
     return {
         "schema_version": SCHEMA_VERSION,
         "units": dict(TRACK_UNITS),
         "status": status,
         "steps": [{"step": r["step"], "pose": r["pose"].tolist(), "tracks": r["tracks"], "score": r["score"],
                    "rot_err_deg": r["rot_err_deg"], "trans_err": r["trans_err"]} for r in rows],
-        "tracks": [{"pose": t.pose.tolist(), "score": t.score, "covariance": t.covariance.tolist()}
-                   for t in tracks.tracks],
+        "tracks": finals,
     }
 
 

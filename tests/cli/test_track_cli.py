@@ -50,6 +50,27 @@ def test_track_writes_the_trajectory(tmp_path, capsys):
     assert (tmp_path / "err.png").stat().st_size > 1000
 
 
+def test_track_writes_association_covariances(tmp_path, capsys):
+    """--association-samples: each final track carries its association covariance, the
+    covariance plus a positive semidefinite term, in schema-valid JSON; a negative count
+    exits 2 with one line."""
+    model = ObjectModel.from_mesh(objects.load("banana"))
+    seq, _ = _sequence(model, np.random.default_rng(4), 4)
+    (tmp_path / "seq.json").write_text(json.dumps(seq))
+    args = ["track", "banana", "--sequence", str(tmp_path / "seq.json"), "-o", str(tmp_path / "out.json")]
+    assert main(args + ["--association-samples", "3", "--seed", "1"]) == 0
+    data = json.loads((tmp_path / "out.json").read_text())
+    errors = list(jsonschema.Draft202012Validator(output.load_schema("track")).iter_errors(data))
+    assert not errors, errors[0].message
+    for t in data["tracks"]:
+        spread, cov = np.array(t["association_covariance"]), np.array(t["covariance"])
+        assert np.linalg.eigvalsh(spread - cov).min() >= -1e-9 * np.abs(spread).max()
+    capsys.readouterr()
+    assert main(args + ["--association-samples", "-1"]) == 2
+    err = capsys.readouterr().err
+    assert "--association-samples must be an integer >= 0, got -1" in err and err.count("\n") == 1, err
+
+
 def test_bad_sequence_exits_2_with_one_line(tmp_path, capsys):
     cases = [({"steps": []}, "with at least one step"),
              ({"steps": [{"contacts": [{"point": [0, 0, 0], "finger_normal": [0, 0, 1]}]}]},
