@@ -227,6 +227,16 @@ def merged_mesh(vertices, faces):
     return merged
 
 
+def vertex_faces(count, faces):
+    """(count, K) int: the faces at each of ``count`` vertices, -1 padded (trimesh's
+    vertex_face_indices), leaving out the faces that repeat a vertex (zero area after merging:
+    trimesh would fall back to a slow loop and log a traceback for them). faces : (m, 3) int."""
+    keep = np.flatnonzero((faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2]))
+    sub = faces[keep]
+    around = trimesh.geometry.vertex_face_indices(count, sub, trimesh.geometry.index_sparse(count, sub))
+    return np.where(around >= 0, keep[np.maximum(around, 0)], -1)
+
+
 def edge_uses(merged):
     """(E,) int: how many faces use each distinct edge of a vertex-merged mesh (zero-length
     edges left out); an edge used by more than two faces is non-manifold."""
@@ -446,16 +456,18 @@ class ObjectModel:
         coordinates of its projection on the plane), to be normalised; a = the facet's first
         vertex. A corner's normal is the area-weighted mean of the normals of the facets at that
         vertex (vertex-merged mesh) within CREASE_DEG of the facet's own: across a sharp edge
-        the normals are not blended."""
+        the normals are not blended. NaN on a facet without a plane (zero area: ``planes.valid``
+        False), which no contact takes."""
         merged = merged_mesh(self.vertices, self.faces)
         faces = np.asarray(merged.faces)
-        around = np.asarray(merged.vertex_faces)[faces]  # (m, 3, K) facets at each corner, -1 padded
+        around = vertex_faces(len(merged.vertices), faces)[faces]  # (m, 3, K) facets at each corner, -1 padded
         normals, areas = self.planes.normals, self.planes.areas
         near = (around >= 0) & (np.einsum("mj,mckj->mck", normals, normals[np.maximum(around, 0)])
                                 >= np.cos(np.radians(CREASE_DEG)))
         weight = np.where(near, areas[np.maximum(around, 0)], 0.0)
         vn = np.einsum("mck,mckj->mcj", weight, normals[np.maximum(around, 0)])
-        vn /= np.linalg.norm(vn, axis=2, keepdims=True)
+        with np.errstate(invalid="ignore", divide="ignore"):  # a zero-area facet's corners: NaN
+            vn /= np.linalg.norm(vn, axis=2, keepdims=True)
         tri = self.triangles
         E = np.stack([tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]], axis=2)  # (m, 3, 2)
         G = np.linalg.pinv(E)  # (m, 2, 3): barycentric (λ_b, λ_c) of p - a, projected
@@ -491,7 +503,8 @@ class ObjectModel:
         """(m, 3, 3) per facet W = C^(-1/2), C = σ_n² I + S_f + σ_x² Dn Dnᵀ: the covariance of the
         smooth contact model's normal rows (object frame), S_f the facet's :attr:`normal_scatter`
         and Dn = ∂n/∂p the smooth normal's change with place at the facet's centroid, which turns
-        the contact's position noise along the surface into normal noise. Cached per (σ_n, σ_x)."""
+        the contact's position noise along the surface into normal noise; σ_n⁻¹ I on a facet
+        without a plane (zero area), which has no smooth normal. Cached per (σ_n, σ_x)."""
         cache = self.__dict__.setdefault("_normal_whitening", {})
         key = (float(normal_noise), float(position_noise))
         if key not in cache:
@@ -501,8 +514,11 @@ class ObjectModel:
             nu = m / size[:, None]
             Dn = (np.eye(3) - nu[:, :, None] * nu[:, None, :]) @ M / size[:, None, None]
             C = key[0] ** 2 * np.eye(3) + self.normal_scatter + key[1] ** 2 * Dn @ np.swapaxes(Dn, 1, 2)
-            values, vectors = np.linalg.eigh(C)
-            cache[key] = np.einsum("fij,fj,fkj->fik", vectors, 1.0 / np.sqrt(values), vectors)
+            W = np.broadcast_to(np.eye(3) / key[0], C.shape).copy()
+            defined = np.isfinite(C).all(axis=(1, 2))
+            values, vectors = np.linalg.eigh(C[defined])
+            W[defined] = np.einsum("fij,fj,fkj->fik", vectors, 1.0 / np.sqrt(values), vectors)
+            cache[key] = W
         return cache[key]
 
     @cached_property

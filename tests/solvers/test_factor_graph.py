@@ -810,6 +810,45 @@ def test_smooth_normals_follow_the_surface_and_keep_creases():
     np.testing.assert_allclose(M, 0.0, atol=1e-12)
 
 
+def test_a_zero_area_facet_leaves_the_smooth_model_of_the_others_unchanged(caplog):
+    """The coarse ellipsoid with two zero-area facets appended (one repeating a vertex, as 20 of
+    the 78 YCB meshes have, one on three collinear points): the other facets' smooth normals,
+    scatter and whitening equal those of the mesh without them, the zero-area ones whiten
+    by σ_n⁻¹ I, nothing is logged, and a smooth-model track starts on a facet beside them."""
+    import logging
+    import warnings
+
+    import trimesh
+
+    from contactpose.model.object_model import ObjectModel
+
+    plain, _ = _ellipsoid_model(subdivisions=2)
+    v, f = plain.vertices, plain.faces
+    mid = len(v)
+    vertices = np.vstack([v, (v[f[0, 0]] + v[f[0, 1]]) / 2])  # on the edge (f0,0 - f0,1)
+    faces = np.vstack([f, [f[0, 0], f[0, 0], f[0, 1]], [f[0, 0], mid, f[0, 1]]])
+    with caplog.at_level(logging.WARNING), warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        model = ObjectModel.from_mesh(trimesh.Trimesh(vertices, faces, process=False))
+        M, corner = model.smooth_normals
+        model.normal_whitening(1e-2, 1e-4)
+    assert not caplog.records, caplog.records[0].getMessage()
+    m = plain.num_facets
+    assert not model.planes.valid[m:].any()
+    M0, corner0 = plain.smooth_normals
+    np.testing.assert_allclose(M[:m], M0, atol=1e-12)
+    np.testing.assert_allclose(corner[:m], corner0, atol=1e-12)
+    tol = Tolerance.from_noise(0.0025 * plain.diameter, 1.0)
+    W = model.normal_whitening(tol.normal_noise, tol.position_noise)
+    np.testing.assert_allclose(W[:m], plain.normal_whitening(tol.normal_noise, tol.position_noise), rtol=1e-9)
+    np.testing.assert_allclose(W[m:], np.broadcast_to(np.eye(3) / tol.normal_noise, (2, 3, 3)))
+    g = simulate.grasp(model, np.random.default_rng(2), n=4, position_noise=tol.position_noise, normal_noise_deg=1.0)
+    from contactpose.solvers.track import PoseTrack
+
+    track = PoseTrack(model, g.contacts, g.facets, g.pose, tol, contact_model="smooth")
+    assert np.isfinite(track.pose).all() and np.isfinite(track.covariance).all()
+
+
 def test_normal_roughness_matches_dense_sampling():
     """ObjectModel.normal_scatter (a quadrature rule) against the mean of d dᵀ, d the facet's
     normal minus the smooth normal, and normal_roughness against the root mean square angle
