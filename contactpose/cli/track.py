@@ -38,6 +38,8 @@ def run(args):
     check_count(args.association_samples, "--association-samples", minimum=0)
     if args.seed is not None and not args.association_samples:
         warn_in_vain("--seed", "without --association-samples")
+    if args.association_samples and not args.output:
+        warn_in_vain("--association-samples", "without -o (the covariances go into OUT.json)")
     model = model_or_mesh(args.model)
     steps = jsonfiles.read_sequence(args.sequence)
     first, _, truth = steps[0]

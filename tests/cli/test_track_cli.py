@@ -53,7 +53,7 @@ def test_track_writes_the_trajectory(tmp_path, capsys):
 def test_track_writes_association_covariances(tmp_path, capsys):
     """--association-samples: each final track carries its association covariance, the
     covariance plus a positive semidefinite term, in schema-valid JSON; a negative count
-    exits 2 with one line."""
+    exits 2 with one line, and without -o the flag warns that it does nothing."""
     model = ObjectModel.from_mesh(objects.load("banana"))
     seq, _ = _sequence(model, np.random.default_rng(4), 4)
     (tmp_path / "seq.json").write_text(json.dumps(seq))
@@ -66,6 +66,8 @@ def test_track_writes_association_covariances(tmp_path, capsys):
         spread, cov = np.array(t["association_covariance"]), np.array(t["covariance"])
         assert np.linalg.eigvalsh(spread - cov).min() >= -1e-9 * np.abs(spread).max()
     capsys.readouterr()
+    assert main(args[:4] + ["--association-samples", "3"]) == 0
+    assert "warning: --association-samples has no effect without -o" in capsys.readouterr().err
     assert main(args + ["--association-samples", "-1"]) == 2
     err = capsys.readouterr().err
     assert "--association-samples must be an integer >= 0, got -1" in err and err.count("\n") == 1, err
