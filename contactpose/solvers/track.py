@@ -388,11 +388,16 @@ class PoseTrack:
         facets that the track associated, which it holds fixed: where the track chose its
         facets, :meth:`association_covariance` also carries their uncertainty (92.0 % on the
         banana; research/tracking.md, "A covariance that carries the association")."""
-        k = len(self.hand) - 1
+        return self._joint_covariance([len(self.hand) - 1])
+
+    def _joint_covariance(self, keys):
+        """(6 len(keys), 6 len(keys)) joint covariance of the poses ``keys`` at the smoothed
+        estimate: the marginal of :attr:`spread`, or iSAM2's own where that leaves directions free."""
+        keys = gtsam.KeyVector(list(keys))
         try:
-            return gtsam.Marginals(self.spread, self._estimate).marginalCovariance(k)
+            return gtsam.Marginals(self.spread, self._estimate).jointMarginalCovariance(keys).fullMatrix()
         except RuntimeError:
-            return self.isam.marginalCovariance(k)
+            return self.isam.jointMarginalCovariance(keys).fullMatrix()
 
     def association_covariance(self, rng, samples=ASSOCIATION_SAMPLES):
         """(6, 6) covariance of the last pose that also carries the association: :attr:`covariance`
@@ -410,11 +415,7 @@ class PoseTrack:
             raise ContactPoseError(f"rng must be a numpy.random.Generator, got {type(rng).__name__}")
         check_count(samples, "samples", minimum=1)
         K, estimate = len(self.hand), self._estimate
-        keys = gtsam.KeyVector(list(range(K)))
-        try:
-            joint = gtsam.Marginals(self.spread, estimate).jointMarginalCovariance(keys).fullMatrix()
-        except RuntimeError:
-            joint = self.isam.jointMarginalCovariance(keys).fullMatrix()
+        joint = self._joint_covariance(range(K))
         draws = rng.multivariate_normal(np.zeros(6 * K), joint, size=samples, method="eigh")
         graphs = [self._reassociated([self.hand[k] @ estimate.atPose3(k).retract(xi[6 * k:6 * k + 6]).matrix()
                                       for k in range(K)], joint) for xi in draws]
