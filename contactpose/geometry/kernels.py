@@ -236,6 +236,12 @@ def fit_cost(point, normal, triangle, facet_normal, weight):
 
 
 @njit(cache=True)
+def segment_d2(x, p, q):
+    """Squared distance from the point x to the closed segment pq, each (3,)."""
+    return _point_segment_d2(_t(x), _t(p), _t(q))
+
+
+@njit(cache=True)
 def closest_point_triangle(p, a, b, c):
     """Closest point to p on the closed triangle abc.
 

@@ -218,6 +218,9 @@ def _diameter_bytes(num_vertices):
 #: ObjectModel.smooth_normals blends the normals of facets at a vertex only within this angle
 #: (30° lost 3 of 100 YCB scissors tracks to the mirror-image pose, 15° one; research/tracking.md).
 CREASE_DEG = 15.0
+#: ObjectModel.crease_edges leaves out an edge whose faces' normals are this close to opposite
+#: (|n_f × n_g|, the sine of the angle between them).
+ARC_MIN = 1e-9
 
 
 def merged_mesh(vertices, faces):
@@ -473,6 +476,32 @@ class ObjectModel:
         G = np.linalg.pinv(E)  # (m, 2, 3): barycentric (λ_b, λ_c) of p - a, projected
         dN = np.stack([vn[:, 1] - vn[:, 0], vn[:, 2] - vn[:, 0]], axis=2)  # (m, 3, 2)
         return dN @ G, vn[:, 0]
+
+    @cached_property
+    def crease_edges(self):
+        """(m, 3, 12) per facet f and edge j (the topology's: corners j, j+1), where the edge is
+        a convex crease (its neighbour g's normal more than CREASE_DEG from f's, so that
+        :attr:`smooth_normals` does not blend across it): the edge's first corner a (3), the
+        unit e = n_f × n_g / |n_f × n_g| (along the edge; the arc of normals from n_f to n_g
+        turns about it), the unit u in f's plane across the edge, pointing into f (3), and n_g
+        (3); NaN rows elsewhere, and where the two normals are opposite (a sheet folded flat:
+        |n_f × n_g| ≤ ARC_MIN, no one arc between them). A rounded fingertip on the crease measures a normal on that
+        arc (model.surface's edge cone), which the smooth contact model takes from here
+        (factor_graph._smooth_normal_rows)."""
+        topology, normals, tri = self.topology, self.planes.normals, self.triangles
+        out = np.full((self.num_facets, 3, 12), np.nan)
+        f, j = np.nonzero(topology.edge_convex & (topology.edge_nbr >= 0))
+        g = topology.edge_nbr[f, j]
+        e = np.cross(normals[f], normals[g])
+        size = np.linalg.norm(e, axis=1)
+        sharp = (np.einsum("ki,ki->k", normals[f], normals[g]) < np.cos(np.radians(CREASE_DEG))) & (size > ARC_MIN)
+        f, j, g, e = f[sharp], j[sharp], g[sharp], e[sharp] / size[sharp, None]
+        a, b, c = tri[f, j], tri[f, (j + 1) % 3], tri[f, (j + 2) % 3]
+        u = np.cross(normals[f], b - a)
+        u /= np.linalg.norm(u, axis=1, keepdims=True)
+        u *= np.sign(np.einsum("ki,ki->k", u, c - a))[:, None]
+        out[f, j] = np.concatenate([a, e, u, normals[g]], axis=1)
+        return out
 
     @cached_property
     def normal_scatter(self):

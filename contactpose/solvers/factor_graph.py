@@ -90,7 +90,7 @@ from scipy.spatial.transform import Rotation
 
 from contactpose.contacts import Contacts
 from contactpose.errors import ContactPoseError, check_count
-from contactpose.geometry.kernels import closest_point_triangle, fit_cost, normal_misfit
+from contactpose.geometry.kernels import _axpy, _cross, _dot, _t, closest_point_triangle, fit_cost, normal_misfit, segment_d2
 from contactpose.geometry.metrics import skew
 from contactpose.solvers import residuals as res
 from contactpose.solvers.closed_form import wahba
@@ -425,20 +425,26 @@ def _smooth_factor(data, smooth, params, place, key, noise):
     return gtsam.CustomFactor(noise, [key], fn)
 
 
+#: Columns of :func:`smooth_data`'s per-contact rows.
+SMOOTH_COLUMNS = 61
+
+
 def smooth_data(model, contacts, facets, tolerance):
-    """The smooth factor's inputs: (pack_contacts data (..., n, 20), smooth (..., n, 25): per
+    """The smooth factor's inputs: (pack_contacts data (..., n, 20), smooth (..., n, 61): per
     contact M (9, row-major), a (3), n_a (3), assigned (1.0 or 0.0), W_f (9, row-major) of
-    ObjectModel.normal_whitening). facets : (..., n) int, as for :func:`pack_contacts`."""
+    ObjectModel.normal_whitening, then its facet's three ObjectModel.crease_edges (3 × 12, NaN
+    where an edge is no crease)). facets : (..., n) int, as for :func:`pack_contacts`."""
     facets = np.asarray(facets)
     safe = np.maximum(facets, 0)
     M, corner = model.smooth_normals
-    smooth = np.empty(facets.shape + (25,))
+    smooth = np.empty(facets.shape + (SMOOTH_COLUMNS,))
     smooth[..., 0:9] = M[safe].reshape(facets.shape + (9,))
     smooth[..., 9:12] = model.triangles[safe, 0]
     smooth[..., 12:15] = corner[safe]
     smooth[..., 15] = facets >= 0
     W = model.normal_whitening(tolerance.normal_noise, tolerance.position_noise)
     smooth[..., 16:25] = W[safe].reshape(facets.shape + (9,))
+    smooth[..., 25:61] = model.crease_edges[safe].reshape(facets.shape + (36,))
     return pack_contacts(model, contacts, facets), smooth
 
 
@@ -449,19 +455,21 @@ def _smooth_rows(T, data, params, smooth, place, e, J):
     plain = params.copy()
     plain[5] = 0.0
     _contact_rows(T, data, plain, e, J)
-    _smooth_normal_rows(T, data, smooth, place, e, J)
+    _smooth_normal_rows(T, data, smooth, place, params[0], params[1], e, J)
     if params[5] != 0.0:
         _robust_rows(e, J, data.shape[0], params[4] != 0.0, int(params[5]), params[2], True)
 
 
 @njit(cache=True)
-def _smooth_normal_rows(T, data, smooth, place, e, J):
-    """Overwrite the 3n normal rows of e and J with r_n = W (n(p) + Rᵀ ñ), n = m/|m|,
-    m = n_a + M (p - a), p = Rᵀ(x̃ - t) (smooth: from :func:`smooth_data`):
-    ∂/∂ω = W (Dn [p]× + [Rᵀñ]×), ∂/∂v = -W Dn, Dn = (I - n nᵀ) M / |m|; without ``place``,
-    Dn = 0 in the Jacobian."""
+def _smooth_normal_rows(T, data, smooth, place, inv_sn, inv_sx, e, J):
+    """Overwrite the 3n normal rows of e and J with each contact's face rows
+    r_n = W (n(p) + Rᵀ ñ), n = m/|m|, m = n_a + M (p - a), p = Rᵀ(x̃ - t) (smooth: from
+    :func:`smooth_data`): ∂/∂ω = W (Dn [p]× + [Rᵀñ]×), ∂/∂v = -W Dn, Dn = (I - n nᵀ) M / |m|;
+    without ``place``, Dn = 0 in the Jacobian. Where a crease edge of the facet costs less
+    (:func:`_crease_rows`), its rows instead."""
     R, t = np.ascontiguousarray(T[:3, :3]), T[:3, 3].copy()
     Rt = np.ascontiguousarray(R.T)
+    edge_e, edge_J = np.empty(3), np.empty((3, 6))
     for i in range(data.shape[0]):
         rows = slice(3 * i, 3 * i + 3)
         if smooth[i, 15] == 0.0:
@@ -479,6 +487,60 @@ def _smooth_normal_rows(T, data, smooth, place, e, J):
         Dn = (np.eye(3) - np.outer(nu, nu)) @ M / size if place else np.zeros((3, 3))
         J[rows, :3] = W @ (Dn @ _hat(p) + _hat(w))  # Dn, the hats: fresh, contiguous
         J[rows, 3:] = -(W @ Dn)
+        best = e[rows] @ e[rows]
+        for k in range(3):
+            edge = smooth[i, 25 + 12 * k:37 + 12 * k]
+            if np.isnan(edge[0]):
+                continue
+            cost = _crease_rows(p, -w, data[i, 0:3], edge, place, inv_sn, inv_sx, edge_e, edge_J)
+            if cost < best:
+                best = cost
+                e[rows] = edge_e
+                J[rows] = edge_J
+
+
+@njit(cache=True)
+def _crease_rows(p, nu, n_f, edge, place, inv_sn, inv_sx, out, J):
+    """The rows of a contact on a crease edge (edge: a, e, u, n_g of ObjectModel.crease_edges)
+    whose measured outward normal ν (object frame) lies in the edge's arc of normals from n_f
+    to n_g: its normal's residual to the arc's nearest direction ν* = Pν/|Pν| (P = I - e eᵀ),
+    in the orthonormal axes e, ν* (ν - ν* = (ν·e) e + (|Pν| - 1) ν*), over σ_n, and the contact's
+    distance across the edge in f's plane, u·(p - a), over σ_x (zero Jacobian without
+    ``place``), written to out (3,) and J (3, 6). ∂ν/∂ω = [ν]×, ∂p/∂ω = [p]×, ∂p/∂v = -I.
+    -> the rows' squared norm, or inf where ν lies outside the arc."""
+    along, size, star, inside = _arc_nearest(nu, n_f, edge)
+    if not inside:
+        return np.inf
+    a, ax, u = edge[0:3], edge[3:6], edge[6:9]
+    out[0] = along * inv_sn
+    out[1] = (size - 1.0) * inv_sn
+    out[2] = (u @ (p - a)) * inv_sx
+    hat_nu = _hat(nu)
+    J[0, :3] = (ax @ hat_nu) * inv_sn
+    J[1, :3] = (np.array(star) @ hat_nu) * inv_sn
+    J[0:2, 3:] = 0.0
+    if place:
+        J[2, :3] = (u @ _hat(p)) * inv_sx
+        J[2, 3:] = -u * inv_sx
+    else:
+        J[2] = 0.0
+    return out @ out
+
+
+@njit(cache=True)
+def _arc_nearest(nu, n_f, edge):
+    """The direction ν* = Pν/|Pν| (P = I - e eᵀ) of a crease edge's arc of normals from n_f
+    to n_g (edge: a, e, u, n_g of ObjectModel.crease_edges) nearest to the unit ν (object
+    frame): (ν·e, |Pν|, ν* (3-tuple), whether ν* lies inside the arc, not beyond its ends)."""
+    ax, n_g = _t(edge[3:6]), _t(edge[9:12])
+    along = _dot(_t(nu), ax)
+    proj = _axpy(-along, ax, _t(nu))
+    size = np.sqrt(_dot(proj, proj))
+    if size < 1e-12:
+        return along, size, proj, False
+    star = (proj[0] / size, proj[1] / size, proj[2] / size)
+    inside = _dot(_cross(_t(n_f), star), ax) > 0.0 and _dot(_cross(star, n_g), ax) > 0.0
+    return along, size, star, inside
 
 
 @njit(cache=True)
@@ -492,10 +554,10 @@ def touch_chi2(T, data, params, smooth=None):
     kernel's rows of :func:`contact_residuals` (``smooth`` None) or of the smooth factor
     (:func:`_smooth_rows`) squared and summed (each robust row block has norm
     g(s) = √(2ρ(s))). T : (H, 4, 4); data : (H, n, 20); params : :func:`kernel_params` with the
-    kernel; smooth : (H, n, 25) or None. -> (H,)"""
+    kernel; smooth : (H, n, SMOOTH_COLUMNS) or None. -> (H,)"""
     T = np.ascontiguousarray(T, dtype=np.float64)
     if smooth is None:
-        return _stacked_chi2(T, data, params, np.zeros(data.shape[:2] + (25,)), False)
+        return _stacked_chi2(T, data, params, np.zeros(data.shape[:2] + (SMOOTH_COLUMNS,)), False)
     return _stacked_chi2(T, data, params, smooth, True)
 
 
@@ -861,12 +923,15 @@ def _contact_chi2(model, contacts, facets, poses, tolerance, point_to_facet):
     return res.whitened_cost(r_n, r_o, r_l, tolerance.normal_noise, tolerance.position_noise)
 
 
-def nearest_fit_facets(model, contacts, pose, tolerance, pose_covariance=None):
+def nearest_fit_facets(model, contacts, pose, tolerance, pose_covariance=None, creases=False):
     """Each contact's best facet under a pose: least whitened point-to-triangle distance²
     plus normal residual². pose : (4, 4) -> (n,) int, or (H, 4, 4) -> (H, n) int, the poses
     searched together in one pass (valid facets only). pose_covariance : None, or the poses'
     (6, 6) / (H, 6, 6) covariance (rotation first, right perturbation), whose spread of each
     contact's object-frame point and normal joins the sensor's (:func:`association_weights`).
+    creases : also score each facet's crease edges (ObjectModel.crease_edges) as the smooth
+    contact model reads them, the squared distance to the edge plus the normal's to the
+    edge's arc of normals (:func:`_arc_nearest`), a contact on an edge taking that facet.
 
     The NEAREST_CANDIDATES facets of nearest centroid are scored first. A facet lies at least
     (its centroid's distance - the largest facet radius) from the contact, so one whose centroid
@@ -888,7 +953,9 @@ def nearest_fit_facets(model, contacts, pose, tolerance, pose_covariance=None):
         if found is None:
             found, found_cost = np.full(len(points), -1), np.full(len(points), np.inf)
         return _best_fits(points, outward, candidates, model.triangles, model.planes.normals, model.facet_radii,
-                          weights, found, found_cost)
+                          weights, found, found_cost, edges)
+
+    edges = model.crease_edges if creases else np.full((1, 3, 12), np.nan)
 
     if len(valid) <= SCORE_ALL_BELOW:  # a coarse mesh: score every facet
         every = np.broadcast_to(valid, (H * n, len(valid)))
@@ -943,34 +1010,61 @@ def _padded(lists, fill):
 
 
 @njit(cache=True)
-def _best_fits(p, normals, candidates, triangles, facet_normals, radii, weight, found, found_cost):
+def _best_fits(p, normals, candidates, triangles, facet_normals, radii, weight, found, found_cost, edges):
     """Each contact's candidate of least fit_cost (the first on a tie), or its ``found`` facet
     of cost ``found_cost`` (m,) when no candidate costs less (-1 and inf: none yet). p, normals
     : (m, 3) object-frame points and outward normals; candidates : (m, K) int; radii : (F,)
-    the facets' radii; weight : (m,) each contact's σ_x²/σ_n² (association_weights). A
-    candidate whose normal misfit plus (centroid distance - radius)² already reaches the least
-    cost so far is not scored further.
+    the facets' radii; weight : (m,) each contact's σ_x²/σ_n² (association_weights); edges :
+    ObjectModel.crease_edges, whose edges of a candidate compete with its face
+    (:func:`_edge_fit`), or one NaN row: none. A candidate whose normal misfit plus (centroid
+    distance - radius)² already reaches the least cost so far is not scored further.
     -> (facets (m,) int, their costs (m,), length²: the whitened cost times σ_x²)"""
     m, K = candidates.shape
     best, cost = np.empty(m, np.int64), np.empty(m)
+    creases = len(edges) > 1
     for i in range(m):
         least, pick = found_cost[i], found[i]
         for j in range(K):
             f = candidates[i, j]
             c = normal_misfit(facet_normals[f], normals[i], weight[i])
-            if c >= least:
+            arcs = _arc_misfits(normals[i], facet_normals[f], edges[f], weight[i]) if creases else _NO_ARCS
+            lower = min(c, arcs[0], arcs[1], arcs[2])
+            if lower >= least:
                 continue
             gap = 0.0
             for a in range(3):
                 gap += (p[i, a] - (triangles[f, 0, a] + triangles[f, 1, a] + triangles[f, 2, a]) / 3.0) ** 2
             gap = max(np.sqrt(gap) - radii[f], 0.0)
-            if c + gap * gap >= least:
+            if lower + gap * gap >= least:
                 continue
             c = fit_cost(p[i], normals[i], triangles[f], facet_normals[f], weight[i])
+            for k in range(3):
+                if arcs[k] < least:
+                    c = min(c, arcs[k] + segment_d2(p[i], triangles[f, k], triangles[f, (k + 1) % 3]))
             if c < least:
                 least, pick = c, f
         best[i], cost[i] = pick, least
     return best, cost
+
+
+_NO_ARCS = (np.inf, np.inf, np.inf)
+
+
+@njit(cache=True)
+def _arc_misfits(nu, n_f, edges, weight):
+    """weight · |ν - ν*|² to the arc of each of a facet's three edges (edges (3, 12) of
+    ObjectModel.crease_edges; :func:`_arc_nearest`), inf where the edge is no crease or ν*
+    would lie beyond the arc's ends. -> 3-tuple"""
+    return (_arc_misfit(nu, n_f, edges[0], weight), _arc_misfit(nu, n_f, edges[1], weight),
+            _arc_misfit(nu, n_f, edges[2], weight))
+
+
+@njit(cache=True)
+def _arc_misfit(nu, n_f, edge, weight):
+    if np.isnan(edge[0]):
+        return np.inf
+    along, size, _, inside = _arc_nearest(nu, n_f, edge)
+    return weight * (along * along + (size - 1.0) ** 2) if inside else np.inf
 
 
 def _empty(n, robust, prior):

@@ -32,7 +32,10 @@ facet is ambiguous, and the default contact model ("auto") is then the smooth on
 interpolated over the facet, its noise widened by the mesh's roughness about it and by the
 contact's position noise along the surface, no point-to-facet rows, so that a contact slides
 from facet to facet (research/tracking.md, "Smooth normals by default on fine meshes", "The
-contact's place noise in the smooth normal").
+contact's place noise in the smooth normal"). Where a rounded fingertip sits on a crease (an
+edge the smooth normals do not blend across), its normal lies on the edge's arc of normals:
+the association and the contact rows then take that edge when it fits better than the face
+(ObjectModel.crease_edges; research/tracking.md, "Contacts on creases").
 """
 
 from __future__ import annotations
@@ -359,7 +362,8 @@ class PoseTrack:
     def associate(self, contacts):
         """Each contact's best-fitting facet under the current smoothed pose (and its
         uncertainty, as a touch's association weighs it). -> (n,) int"""
-        return fg.nearest_fit_facets(self.model, contacts, self.pose, self.tolerance, self._uncertainty())
+        return fg.nearest_fit_facets(self.model, contacts, self.pose, self.tolerance, self._uncertainty(),
+                                     creases=self.contact_model == "smooth")
 
     def _y(self, k):
         return (self._last if k == len(self.hand) - 1 else self._estimate.atPose3(k)).matrix()
@@ -433,7 +437,8 @@ class PoseTrack:
         for (k, contacts, facets), associated in zip(self.touches, self._associated):
             if associated:
                 again = fg.nearest_fit_facets(self.model, contacts, poses[k], self.tolerance,
-                                              joint[6 * k:6 * k + 6, 6 * k:6 * k + 6] if uncertain else None)
+                                              joint[6 * k:6 * k + 6, 6 * k:6 * k + 6] if uncertain else None,
+                                              creases=self.contact_model == "smooth")
                 changed |= bool((again != facets).any())
                 facets = again
             for factor in self._factors(contacts.transformed(rigid_inverse(self.hand[k])), facets, k)[0]:
@@ -578,7 +583,7 @@ def add_touch(tracks, contacts, motion):
         raise ContactPoseError("tracks touched together must share one model, one tolerance, one contact model, "
                                "one point-to-facet setting and one robust kernel")
     facets = fg.nearest_fit_facets(model, contacts, np.stack([t._predicted(motion) for t in tracks]), tolerance,
-                                   _stacked([t._uncertainty(motion) for t in tracks]))
+                                   _stacked([t._uncertainty(motion) for t in tracks]), creases=kind[0] == "smooth")
     hands, local = [t._hand_after(motion) for t in tracks], {}
     for h in hands:  # the touch in each hand frame, once per distinct hand pose
         if h.tobytes() not in local:
@@ -591,7 +596,7 @@ def add_touch(tracks, contacts, motion):
     tried = {id(t): {tuple(f)} for t, f in zip(tracks, facets)}
     for _ in range(REASSOCIATE):
         again = fg.nearest_fit_facets(model, contacts, np.stack([t.pose for t in pending]), tolerance,
-                                      _stacked([t._uncertainty() for t in pending]))
+                                      _stacked([t._uncertainty() for t in pending]), creases=kind[0] == "smooth")
         changed = [(t, f) for t, f in zip(pending, again) if tuple(f) not in tried[id(t)]]
         packings = _packings([t for t, _ in changed], [t._local for t, _ in changed], [f for _, f in changed])
         for (t, f), packing in zip(changed, packings):

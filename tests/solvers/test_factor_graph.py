@@ -1005,3 +1005,198 @@ def test_smooth_normals_track_an_ellipsoid_closer_than_facet_normals():
                 t.add(contacts, hand_motion=(delta, 0.1, 0.0001))
             errors[m] += [rotation_error_deg(T, Y) for T, Y in zip(t.relinearize()[1:], [Y for _, Y, _ in touches])]
     assert np.median(errors["smooth"]) < 0.3 * np.median(errors["facets"])
+
+
+def _edge_contacts(model, rng, count, pose):
+    """Contacts on ``count`` random crease edges of ``model`` (ObjectModel.crease_edges) at
+    ``pose``, each at a random point of its edge with a normal on the edge's arc from n_f to
+    n_g (as a rounded fingertip rolling over it): (Contacts, facets f, edge slots k,
+    object-frame points and outward normals)."""
+    f, k = np.nonzero(~np.isnan(model.crease_edges[:, :, 0]))
+    pick = rng.choice(len(f), count, replace=False)
+    f, k = f[pick], k[pick]
+    tri = model.triangles
+    a, b = tri[f, k], tri[f, (k + 1) % 3]
+    p = a + rng.uniform(0.1, 0.9, (count, 1)) * (b - a)
+    n_f, n_g = model.planes.normals[f], model.crease_edges[f, k, 9:12]
+    angle = np.arccos(np.clip(np.einsum("ci,ci->c", n_f, n_g), -1, 1))
+    s = rng.uniform(0.1, 0.9, count)[:, None]  # slerp from n_f to n_g
+    nu = (np.sin((1 - s) * angle[:, None]) * n_f + np.sin(s * angle[:, None]) * n_g) / np.sin(angle)[:, None]
+    R, t = pose[:3, :3], pose[:3, 3]
+    return Contacts(p @ R.T + t, finger_normals=-(nu @ R.T)), f, k, p, nu
+
+
+def test_crease_edges_of_a_box_are_its_twelve_edges():
+    """On the box (48 facets) the crease edges are the segments of its 12 edges (90°), each
+    from both sides, which together make up their length, and no facet's other edges: e along
+    the edge and normal to both faces' normals, u in f's plane across the edge into f; the
+    fine ellipsoid has none."""
+    from contactpose.model.object_model import ObjectModel
+    from contactpose.sim import objects
+
+    box = ObjectModel.from_mesh(objects.load("box"))
+    edges = box.crease_edges
+    f, k = np.nonzero(~np.isnan(edges[:, :, 0]))
+    tri, n_f = box.triangles, box.planes.normals[f]
+    a, b, c = tri[f, k], tri[f, (k + 1) % 3], tri[f, (k + 2) % 3]
+    e, u, n_g = edges[f, k, 3:6], edges[f, k, 6:9], edges[f, k, 9:12]
+    np.testing.assert_allclose(edges[f, k, 0:3], a)
+    np.testing.assert_allclose(np.abs(np.einsum("ci,ci->c", e, (b - a) / np.linalg.norm(b - a, axis=1)[:, None])), 1.0)
+    np.testing.assert_allclose(np.einsum("ci,ci->c", n_f, n_g), 0.0, atol=1e-12)
+    np.testing.assert_allclose(np.cross(n_f, n_g), e, atol=1e-12)
+    np.testing.assert_allclose(np.einsum("ci,ci->c", u, n_f), 0.0, atol=1e-12)
+    np.testing.assert_allclose(np.einsum("ci,ci->c", u, b - a), 0.0, atol=1e-12)
+    assert (np.einsum("ci,ci->c", u, c - a) > 0).all()
+    lo, hi = box.vertices.min(axis=0), box.vertices.max(axis=0)
+    on_faces = lambda x: (np.isclose(x, lo, atol=1e-12) | np.isclose(x, hi, atol=1e-12)).sum(axis=1)
+    assert (on_faces(a) >= 2).all() and (on_faces(b) >= 2).all() and (on_faces((a + b) / 2) == 2).all()
+    segments = {}
+    for x, y in zip(np.round(a, 9), np.round(b, 9)):
+        key = tuple(sorted((tuple(x), tuple(y))))
+        segments[key] = segments.get(key, 0) + 1
+    assert set(segments.values()) == {2}
+    length = sum(np.linalg.norm(np.subtract(*key)) for key in segments)
+    assert length == pytest.approx(4 * np.sum(hi - lo), rel=1e-9)
+    ellipsoid, _ = _ellipsoid_model()
+    assert np.isnan(ellipsoid.crease_edges).all()
+
+
+def test_smooth_rows_on_a_crease_edge_are_the_distance_to_its_arc_of_normals():
+    """Contacts on crease edges of the rock (points on the edge moved off it, normals on the
+    edge's arc tilted off it): the smooth factor's normal rows have the squared norm of the
+    cheaper reading, the face's (W (n(p) - ν)) or the edge's, whose reference is the angle
+    to the arc by dense sampling (20,001 directions) over σ_n, plus the distance across the
+    edge in f's plane over σ_x; a tilt of more than 10 σ_n costs the face reading more. The
+    Jacobian against central differences (with and without ``place``, which then holds the
+    place still: zero rows for the distance across the edge)."""
+    from contactpose.model.object_model import ObjectModel
+    from contactpose.sim import objects
+
+    model = ObjectModel.from_mesh(objects.load("rock"))
+    tol = Tolerance.from_noise(0.0025 * model.diameter, 1.0)
+    rng = np.random.default_rng(17)
+    pose = gtsam.Pose3.Expmap(rng.normal(size=6)).matrix()
+    contacts, f, k, p, nu = _edge_contacts(model, rng, 40, pose)
+    off = rng.normal(0.0, tol.position_noise, p.shape)
+    nu = nu + rng.normal(0.0, tol.normal_noise, nu.shape)
+    nu /= np.linalg.norm(nu, axis=1, keepdims=True)
+    R, t = pose[:3, :3], pose[:3, 3]
+    contacts = Contacts((p + off) @ R.T + t, finger_normals=-(nu @ R.T))
+    data, smooth = fg.smooth_data(model, contacts, f, tol)
+    params = fg.kernel_params(tol, "none", False)
+    e, J = np.empty(fg.factor_dim(contacts.n, False)), np.empty((fg.factor_dim(contacts.n, False), 6))
+    fg._smooth_rows(pose, data, params, smooth, True, e, J)
+    rows = e[:3 * contacts.n].reshape(-1, 3)
+    edge = model.crease_edges[f, k]
+    n_f, n_g = model.planes.normals[f], edge[:, 9:12]
+    angle = np.arccos(np.clip(np.einsum("ci,ci->c", n_f, n_g), -1, 1))
+    def to_arc(lo, hi):  # the nearest of 2,001 directions of the arc between fractions lo and hi
+        s = lo[:, None, None] + (hi - lo)[:, None, None] * np.linspace(0.0, 1.0, 2001)[None, :, None]
+        arc = (np.sin((1 - s) * angle[:, None, None]) * n_f[:, None] + np.sin(s * angle[:, None, None]) * n_g[:, None]
+               ) / np.sin(angle)[:, None, None]
+        gap = np.linalg.norm(arc - nu[:, None], axis=2)
+        at = np.argmin(gap, axis=1)
+        return gap[np.arange(len(gap)), at], s[:, :, 0][np.arange(len(gap)), at], (hi - lo) / 2000
+
+    gap, s, step = to_arc(np.zeros(len(f)), np.ones(len(f)))
+    inside = (s > 0.0) & (s < 1.0)  # beyond the arc's ends, the edge offers nothing
+    for _ in range(2):
+        gap, s, step = to_arc(np.maximum(s - step, 0.0), np.minimum(s + step, 1.0))
+    across = np.einsum("ci,ci->c", edge[:, 6:9], p + off - edge[:, 0:3])
+    edge_cost = np.where(inside, (gap / tol.normal_noise) ** 2 + (across / tol.position_noise) ** 2, np.inf)
+    M, corner = model.smooth_normals
+    m = corner[f] + np.einsum("cij,cj->ci", M[f], p + off - model.triangles[f, 0])
+    W = model.normal_whitening(tol.normal_noise, tol.position_noise)[f]
+    face = np.einsum("cij,cj->ci", W, m / np.linalg.norm(m, axis=1, keepdims=True) - nu)
+    face_cost = np.sum(face**2, axis=1)
+    other = (model.crease_edges[f][:, :, 0] == model.crease_edges[f][:, :, 0]).sum(axis=1) > 1  # another crease edge
+    mine = np.sum(rows**2, axis=1)
+    single = ~other
+    np.testing.assert_allclose(mine[single], np.minimum(face_cost, edge_cost)[single], rtol=1e-6)
+    assert (mine[other] <= np.minimum(face_cost, edge_cost)[other] * (1 + 1e-6)).all()
+    tilted = np.degrees(np.arccos(np.clip(np.einsum("ci,ci->c", nu, n_f), -1, 1))) > 10.0
+    clear = tilted & single & inside
+    assert (mine[clear] < face_cost[clear]).all() and clear.sum() >= 10
+    for place in (True, False):
+        factors = fg.reweighted_smooth_factors(data, smooth, tol, "none", False, 0, place=place)
+        at = gtsam.Pose3(pose)
+        for i in np.flatnonzero(single)[:10]:
+            values = gtsam.Values()
+            values.insert(0, at)
+            A, _ = factors[i].linearize(values).jacobian()
+
+            def err(x, i=i):
+                v = gtsam.Values()
+                v.insert(0, x)
+                return factors[i].unwhitenedError(v)
+
+            numeric = np.stack([(err(at.retract(h)) - err(at.retract(-h))) / 2e-7 for h in 1e-7 * np.eye(6)], 1)
+            if not place:  # on the edge, the distance across it held still; the face's: tested above
+                if mine[i] >= face_cost[i] * (1 - 1e-6):
+                    continue
+                assert np.abs(A[2]).max() == 0.0
+                numeric[2] = 0.0
+            np.testing.assert_allclose(A, numeric, rtol=1e-5, atol=1e-5 * np.abs(A).max())
+
+
+@pytest.mark.parametrize("name", ["rock", "ycb:011_banana"])
+def test_nearest_fit_facets_with_creases_is_the_brute_force_minimum(name):
+    """With ``creases``, each contact's facet costs the least of its face and its crease edges
+    (distance² to the edge plus weight · |ν - ν*|², ν* the arc's direction nearest to ν, inside
+    the arc), computed here over every valid facet and every crease edge with numpy: contacts
+    on crease edges and at facet points, noisy, under poses off by up to 2 % of the diameter
+    and 2 degrees. On a tie (an edge seen from both its facets) either facet will do: the
+    chosen facet's cost is the least."""
+    from contactpose.geometry.kernels import point_triangle_distance
+    from contactpose.model.object_model import ObjectModel
+    from contactpose.sim import objects
+
+    model = ObjectModel.from_mesh(objects.load(name))
+    d, rng = model.diameter, np.random.default_rng(23)
+    tol = Tolerance.from_noise(0.0025 * d, 1.0)
+    weight = (tol.position_noise / tol.normal_noise) ** 2
+    valid = np.flatnonzero(model.planes.valid)
+    ef, ek = np.nonzero(~np.isnan(model.crease_edges[:, :, 0]))
+    edge = model.crease_edges[ef, ek]
+    a, b = model.triangles[ef, ek], model.triangles[ef, (ek + 1) % 3]
+    n_f, axis, n_g = model.planes.normals[ef], edge[:, 3:6], edge[:, 9:12]
+
+    def brute_force_costs(contacts, T):
+        """(n, m) each contact's least cost on each facet (inf: invalid)."""
+        p = (contacts.points - T[:3, 3]) @ T[:3, :3]
+        nu = -contacts.finger_normals @ T[:3, :3]
+        cost = np.full((contacts.n, model.num_facets), np.inf)
+        dist = point_triangle_distance(np.repeat(p, len(valid), 0), np.tile(model.triangles[valid], (contacts.n, 1, 1)))
+        cost[:, valid] = dist.reshape(contacts.n, -1) ** 2 + weight * np.sum(
+            (model.planes.normals[valid][None] - nu[:, None]) ** 2, axis=2)
+        s = np.clip(np.einsum("cei,ei->ce", p[:, None] - a[None], b - a) / np.sum((b - a) ** 2, axis=1), 0, 1)
+        seg = np.sum((a[None] + s[..., None] * (b - a)[None] - p[:, None]) ** 2, axis=2)
+        proj = nu[:, None] - np.einsum("ci,ei->ce", nu, axis)[..., None] * axis[None]
+        star = proj / np.linalg.norm(proj, axis=2, keepdims=True)
+        turn = lambda x, y: np.arctan2(np.einsum("...i,...i->...", np.cross(x, y), axis), np.einsum("...i,...i->...", x, y))
+        inside = (turn(n_f[None], star) > 0) & (turn(star, n_g[None]) > 0)
+        arc = np.where(inside, seg + weight * np.sum((nu[:, None] - star) ** 2, axis=2), np.inf)
+        for c in range(contacts.n):
+            np.minimum.at(cost[c], ef, arc[c])
+        return cost
+
+    pose = gtsam.Pose3.Expmap(rng.normal(size=6)).matrix()
+    on_edges = _edge_contacts(model, rng, 20, pose)[0]
+    g = simulate.grasp(model, rng, n=4, position_noise=0.0, normal_noise_deg=0.0)
+    at_faces = g.contacts.transformed(pose @ np.linalg.inv(g.pose))
+    contacts = on_edges.joined(at_faces)
+    noisy = contacts.finger_normals + rng.normal(0, tol.normal_noise, (contacts.n, 3))
+    contacts = Contacts(contacts.points + rng.normal(0, tol.position_noise, (contacts.n, 3)),
+                        finger_normals=noisy / np.linalg.norm(noisy, axis=1, keepdims=True))
+    poses = np.stack([pose] * 3)
+    poses[1:, :3, 3] += 0.02 * d * rng.normal(size=(2, 3)) / np.sqrt(3)
+    poses[1:, :3, :3] = Rotation.from_rotvec(np.radians(2.0) * rng.normal(size=(2, 3)) / np.sqrt(3)).as_matrix() @ pose[:3, :3]
+    found = fg.nearest_fit_facets(model, contacts, poses, tol, creases=True)
+    plain = fg.nearest_fit_facets(model, contacts, poses, tol)
+    took_edge = 0
+    for h, T in enumerate(poses):
+        cost = brute_force_costs(contacts, T)
+        least = cost.min(axis=1)
+        np.testing.assert_allclose(cost[np.arange(contacts.n), found[h]], least, rtol=1e-9, atol=1e-18)
+        took_edge += int((found[h] != plain[h]).sum())
+    assert took_edge >= 10  # the edges take contacts from the faces
