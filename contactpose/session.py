@@ -16,6 +16,8 @@ research/tracking.md has the model and the measurements.
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
 from contactpose import touch as touchmod
@@ -100,7 +102,7 @@ class TouchSession:
             return localize(self.model, self.contacts, prior=self.prior, tree=tree, **self.noise, **self.options)
         units = self._units()
         tuples = np.arange(units[1], dtype=np.int64)[:, None]
-        return Result("underdetermined", HypothesisList(_empty_arrays(1)), {}, self.options.get("method", "fast"),
+        return Result("underdetermined", HypothesisList(_empty_arrays(1)), stage_times(0.0), self.options.get("method", "fast"),
                       self.options.get("solver") or "closed-form", self.tolerance,
                       f"one contact: every one of the {units[1]} {units[0]} can carry it; add another contact",
                       num_hypotheses=units[1], tree=SearchTree(self.contacts, self.tolerance, units[0], tuples))
@@ -116,11 +118,12 @@ class TouchSession:
     def _held(self, contacts, hand_motion):
         """A touch of the held object: start the tracks on the first hand motion, then one
         iSAM2 update per track."""
+        clock = time.perf_counter()
         if self.tracks is None:
             self.tracks = self._start_tracks()
         self.tracks.add(contacts, hand_motion=hand_motion)
         self.contacts = contacts if hand_motion is not None else self.contacts.joined(contacts)
-        return self._tracks_result()
+        return self._tracks_result(clock, time.perf_counter() - clock)
 
     def _start_tracks(self):
         """A TrackSet from the hypotheses so far that determine the pose."""
@@ -132,11 +135,12 @@ class TouchSession:
         return TrackSet(self.model, self.contacts, starts, self.tolerance, max_tracks=self.max_tracks,
                         robust=self.options.get("robust", "huber"))
 
-    def _tracks_result(self):
+    def _tracks_result(self, clock, track_s):
         """The tracks as a Result: per track its current pose, every touch's facets, residuals
         of every contact at its own smoothed pose, cost = sequential χ², covariance of the last
         pose (and the best track's association covariance as its sample_covariance, when
-        asked); status "ok" with one track, else "ambiguous"."""
+        asked); status "ok" with one track, else "ambiguous"; timing (seconds) since
+        ``clock`` (time.perf_counter()), of which ``track_s`` in the tracks."""
         parts = []
         for track in self.tracks.tracks:
             seen, facets = track.seen_now()
@@ -153,8 +157,16 @@ class TouchSession:
         listed = HypothesisList(arrays)
         if self.association_samples:
             listed.sample_covariances[0] = self.tracks.best.association_covariance(self.rng, self.association_samples)
-        return Result("ok" if k == 1 else "ambiguous", listed, {}, "fast", "factor-graph",
+        timing = stage_times(time.perf_counter() - clock, track=track_s)
+        return Result("ok" if k == 1 else "ambiguous", listed, timing, "fast", "factor-graph",
                       self.tolerance, hint, num_hypotheses=k, extra={"tracking": True, "touches": len(self.history) + 1})
+
+
+def stage_times(total, **more):
+    """A Result's timing (seconds) for an answer without a search: the search's stages (pairs, tree,
+    pose, rank) 0, as they did not run, ``total`` and ``more`` stages (a held touch's
+    ``track``: starting and updating the tracks)."""
+    return dict(pairs=0.0, tree=0.0, pose=0.0, rank=0.0, **more, total=float(total))
 
 
 def _empty_arrays(n):

@@ -176,8 +176,10 @@ class Hypothesis:
     def to_dict(self):
         """This hypothesis as JSON (``$defs/hypothesis`` of contactpose/data/result.schema.json):
         lengths in mesh units, residual columns RESIDUAL_COLUMNS, covariance (6, 6) in
-        TANGENT_ORDER with rotation in radians; null for what was not computed, NaN as null."""
-        return {
+        TANGENT_ORDER with rotation in radians; null for what was not computed, NaN as null;
+        ``sample_covariance`` only where it comes without samples (a held TouchSession's
+        association covariance), otherwise it is the samples' own."""
+        out = {
             "facets": self.facets.tolist(),
             "outliers": self.outliers.tolist(),
             "pose": self.pose.tolist(),
@@ -191,6 +193,9 @@ class Hypothesis:
             "probability": None if self.probability is None else json_number(self.probability),
             "samples": None if self.samples is None else self.samples.summary(),
         }
+        if self.samples is None and self.sample_covariance is not None:
+            out["sample_covariance"] = json_array(self.sample_covariance)
+        return out
 
     def __repr__(self):
         parts = [f"facets {self.facets.tolist()}", f"chi2 {self.chi2:.3g}", f"cost {self.cost:.3g}"]
@@ -399,9 +404,10 @@ RESIDUAL_COLUMNS = ("normal_x", "normal_y", "normal_z", "offset", "lateral")
 #: Order of every 6-vector and 6×6 covariance in the JSON: GTSAM's Pose3 tangent, rotation first.
 TANGENT_ORDER = ("rot_x", "rot_y", "rot_z", "trans_x", "trans_y", "trans_z")
 #: Angle unit of each angle-valued field of the localize JSON (paths inside a hypothesis
-#: for the last four); the translation parts of covariances and samples are in length units.
+#: for the last five); the translation parts of covariances and samples are in length units.
 ANGLE_UNITS = {"tolerance.angle_deg": "deg", "tolerance.normal_noise_deg": "deg", "covariance": "rad",
-               "samples.mean": "rad", "samples.covariance": "rad", "samples.intervals": "deg"}
+               "sample_covariance": "rad", "samples.mean": "rad", "samples.covariance": "rad",
+               "samples.intervals": "deg"}
 
 
 def result_units():

@@ -1,6 +1,8 @@
 """TouchSession: touches added one by one against localize of all contacts at once
 (static object), and against a TrackSet driven by hand (held object)."""
 
+import json
+
 import numpy as np
 import pytest
 
@@ -9,6 +11,7 @@ from contactpose.sim import grasps as simulate
 from contactpose.solvers.track import TrackSet
 from tests.conftest import random_icosahedron
 from tests.solvers.test_track import _motion
+from tests.test_schema import validate
 
 NOISE = 0.0025  # of the diameter
 
@@ -124,6 +127,11 @@ def test_held_session_is_the_track_set(rock_model):
         assert all(h.sample_covariance is None for h in r.hypotheses[1:])
     assert r.status in ("ok", "ambiguous") and r.best.facets.shape == (4 + 12,)
     assert np.degrees(np.arccos(np.clip((np.trace(r.best.pose[:3, :3].T @ X[:3, :3]) - 1) / 2, -1, 1))) < 5.0
+    data = json.loads(json.dumps(r.to_dict()))  # the JSON a user writes: validates, holds the covariance
+    validate(data, "result")
+    assert data["timing_ms"]["track"] > 0 and data["timing_ms"]["total"] >= data["timing_ms"]["track"]
+    np.testing.assert_allclose(data["hypotheses"][0]["sample_covariance"], r.best.sample_covariance, rtol=1e-15)
+    assert all("sample_covariance" not in h for h in data["hypotheses"][1:])
     with pytest.raises(ContactPoseError, match="static"):
         session.suggest_touch(rng=rng)
 
