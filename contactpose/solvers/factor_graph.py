@@ -1016,7 +1016,7 @@ def _best_fits(p, normals, candidates, triangles, facet_normals, radii, weight, 
     : (m, 3) object-frame points and outward normals; candidates : (m, K) int; radii : (F,)
     the facets' radii; weight : (m,) each contact's σ_x²/σ_n² (association_weights); edges :
     ObjectModel.crease_edges, whose edges of a candidate compete with its face
-    (:func:`_edge_fit`), or one NaN row: none. A candidate whose normal misfit plus (centroid
+    (:func:`_arc_misfits`), or one NaN row: none. A candidate whose normal misfit plus (centroid
     distance - radius)² already reaches the least cost so far is not scored further.
     -> (facets (m,) int, their costs (m,), length²: the whitened cost times σ_x²)"""
     m, K = candidates.shape
