@@ -25,8 +25,8 @@ Per touch, three estimates of the current pose:
   last 4 contacts; its estimate.
 
 Rotation error (°) and translation error (mm) per touch, and, on the track method's rows, the
-number of tracks held after it (column ``tracks``); a track is lost when the last touch's error exceeds ``lost_deg`` or
-``lost_frac`` of the diameter. The pose counts as determined from the first touch after
+number of tracks held after it (column ``tracks``); a track is lost when the last touch's
+error exceeds ``lost_deg`` or ``lost_frac`` of the diameter. The pose counts as determined from the first touch after
 which one track is left (the session's status "ok"), and the summary gives the worst touch's
 median over all touches and over those once determined. Writes
 results/sequential/steps.csv (one row per sequence, touch and method) and summary.md;

@@ -485,9 +485,9 @@ class ObjectModel:
         unit e = n_f × n_g / |n_f × n_g| (along the edge; the arc of normals from n_f to n_g
         turns about it), the unit u in f's plane across the edge, pointing into f (3), and n_g
         (3); NaN rows elsewhere, and where the two normals are opposite (a sheet folded flat:
-        |n_f × n_g| ≤ ARC_MIN, no one arc between them). A rounded fingertip on the crease measures a normal on that
-        arc (model.surface's edge cone), which the smooth contact model takes from here
-        (factor_graph._smooth_normal_rows)."""
+        |n_f × n_g| ≤ ARC_MIN, no one arc between them). A rounded fingertip on the crease
+        measures a normal on that arc (model.surface's edge cone), which the smooth contact
+        model takes from here (factor_graph._smooth_normal_rows)."""
         topology, normals, tri = self.topology, self.planes.normals, self.triangles
         out = np.full((self.num_facets, 3, 12), np.nan)
         f, j = np.nonzero(topology.edge_convex & (topology.edge_nbr >= 0))
