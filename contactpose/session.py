@@ -9,7 +9,9 @@
   hand motion on, every hypothesis that determines the pose becomes a track in an iSAM2
   smoother (solvers.track.TrackSet: a pose variable per hand motion, linked by the slip,
   tracks pruned by their sequential χ² and merged when their poses coincide, at most
-  ``max_tracks``). A touch without a hand motion then joins the current pose variable.
+  ``max_tracks``). A touch without a hand motion then joins the current pose variable. A
+  touch that no track explains adds tracks localized afresh from the latest touches
+  (:func:`relocalizer`), each replayed over every touch so far.
 
 research/tracking.md has the model and the measurements.
 """
@@ -29,6 +31,14 @@ from contactpose.search.tree import SearchTree
 from contactpose.solvers.track import MAX_TRACKS, TrackSet
 from contactpose.types import DEFAULT_POSITION_NOISE_FRAC, HypothesisArrays, HypothesisList, PoseFit, Result
 
+#: Seconds for the search of a reseed (relocalizer), on a touch that no track explains. The
+#: tree gets a quarter of it, the pair stage included (localize.TREE_SHARE). At 1 s the pair
+#: stage of a YCB mug's 4 contacts (0.1–0.3 s, with the machine's pace) cut some trees short,
+#: and the answer hung on the machine's load; the slowest reseed of the mug's 100 sequences
+#: grows its tree in 2.4 s (6.6 s in all), a third of this limit's share.
+RESEED_TIME_LIMIT = 30.0
+#: The session's localize options that its reseeds take too.
+RESEED_OPTIONS = ("method", "model_error", "robust")
 #: localize options a session does not take: it sets them itself.
 OWN_OPTIONS = ("position_noise", "normal_noise_deg", "prior", "tree")
 
@@ -42,7 +52,9 @@ class TouchSession:
     ``sample_covariance`` after each touch is its association covariance from this many drawn
     trajectories (PoseTrack.association_covariance: the Laplace covariance plus the spread
     that the choice of facets adds; about 0.15 s per touch for 20), drawn with ``rng`` (a
-    numpy.random.Generator); 0 (default): None; options : further :func:`localize` keywords
+    numpy.random.Generator); 0 (default): None; reseed : a held object's touch that no track
+    explains adds tracks localized afresh from the latest touches (:func:`relocalizer`,
+    TrackSet); options : further :func:`localize` keywords
     (method, solver, keep, time_limit, ...), used for every static touch.
 
     ``result`` is the latest Result, ``history`` every touch's, ``contacts`` the contacts so
@@ -50,14 +62,14 @@ class TouchSession:
     """
 
     def __init__(self, model, *, position_noise=None, normal_noise_deg=1.0, prior=None, max_tracks=MAX_TRACKS,
-                 association_samples=0, rng=None, **options):
+                 association_samples=0, rng=None, reseed=True, **options):
         taken = sorted(set(options) & set(OWN_OPTIONS))
         if taken:
             raise ContactPoseError(f"TouchSession sets {taken} itself; give noise and prior to TouchSession")
         self.association_samples = check_count(association_samples, "association_samples", minimum=0)
         if self.association_samples and not isinstance(rng, np.random.Generator):
             raise ContactPoseError(f"association_samples needs rng, a numpy.random.Generator; got {type(rng).__name__}")
-        self.rng = rng
+        self.rng, self.reseed = rng, bool(reseed)
         self.model, self.prior, self.max_tracks, self.options = model, prior, max_tracks, options
         if position_noise is None:
             position_noise = DEFAULT_POSITION_NOISE_FRAC * model.diameter
@@ -132,8 +144,10 @@ class TouchSession:
         if not starts:
             raise ContactPoseError("the touches so far leave the pose free (or found nothing); a held object needs a "
                                    "determined pose before the hand moves: add contacts without hand_motion first")
+        seeder = relocalizer(self.model, self.tolerance, **{k: self.options[k] for k in RESEED_OPTIONS
+                                                              if k in self.options}) if self.reseed else None
         return TrackSet(self.model, self.contacts, starts, self.tolerance, max_tracks=self.max_tracks,
-                        robust=self.options.get("robust", "huber"))
+                        robust=self.options.get("robust", "huber"), seeder=seeder)
 
     def _tracks_result(self, clock, track_s):
         """The tracks as a Result: per track its current pose, every touch's facets, residuals
@@ -158,8 +172,9 @@ class TouchSession:
         if self.association_samples:
             listed.sample_covariances[0] = self.tracks.best.association_covariance(self.rng, self.association_samples)
         timing = stage_times(time.perf_counter() - clock, track=track_s)
+        extra = {"tracking": True, "touches": len(self.history) + 1, "reseeds": self.tracks.reseeds}
         return Result("ok" if k == 1 else "ambiguous", listed, timing, "fast", "factor-graph",
-                      self.tolerance, hint, num_hypotheses=k, extra={"tracking": True, "touches": len(self.history) + 1})
+                      self.tolerance, hint, num_hypotheses=k, extra=extra)
 
 
 def stage_times(total, **more):
@@ -175,3 +190,15 @@ def _empty_arrays(n):
                   np.zeros((0, 3)), np.zeros(0, bool))
     return HypothesisArrays(np.zeros((0, n), np.int64), np.zeros((0, 4, 4)), np.zeros(0), np.zeros(0),
                             np.zeros((0, n, 5)), fit)
+
+
+def relocalizer(model, tolerance, time_limit=RESEED_TIME_LIMIT, **options):
+    """A TrackSet's seeder: Contacts -> [(facets, pose)], the hypotheses of :func:`localize`
+    (sensor noise as ``tolerance``'s, keep="all", ``time_limit`` seconds, further ``options``)
+    that determine the pose, best first."""
+    def seeds(contacts):
+        result = localize(model, contacts, position_noise=tolerance.position_noise,
+                          normal_noise_deg=np.degrees(tolerance.normal_noise), keep="all", time_limit=time_limit,
+                          progress=False, **options)
+        return [(h.facets, h.pose) for h in result.hypotheses if not h.underdetermined and not len(h.outliers)]
+    return seeds

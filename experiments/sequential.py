@@ -15,7 +15,9 @@ Per touch, three estimates of the current pose:
   that localize lists for the first grasp (``keep="all"``), told the hand motions and the slip
   sigmas, with the contact model of ``--contact-model`` (default "auto": smooth normals on the
   YCB meshes, PoseTrack); each contact takes its best-fitting facet under each track's predicted pose; one
-  iSAM2 update per track and touch; the best track's pose (least sequential χ²);
+  iSAM2 update per track and touch; the best track's pose (least sequential χ²). A touch that
+  no track explains (TrackSet.SURPRISE_P) adds tracks localized afresh from the last 4
+  contacts, each replayed over the sequence (session.relocalizer; ``--no-reseed``: none);
 * ``batch``: Levenberg–Marquardt on the best track's graph from the same initial values,
   every touch;
 * ``relocalize``: ``localize`` from scratch on the last 4 contacts (this touch's 2 and the
@@ -25,7 +27,7 @@ Per touch, three estimates of the current pose:
   last 4 contacts; its estimate.
 
 Rotation error (°) and translation error (mm) per touch, and, on the track method's rows, the
-number of tracks held after it (column ``tracks``); a track is lost when the last touch's
+number of tracks held after it (column ``tracks``) and the reseeds so far (``reseeds``); a track is lost when the last touch's
 error exceeds ``lost_deg`` or ``lost_frac`` of the diameter. The pose counts as determined from the first touch after
 which one track is left (the session's status "ok"), and the summary gives the worst touch's
 median over all touches and over those once determined. Writes
@@ -88,6 +90,7 @@ from contactpose.contacts import Tolerance
 from contactpose.geometry import metrics
 from contactpose.geometry.sampling import perturb_normals
 from contactpose.model.object_model import merged_mesh
+from contactpose.session import relocalizer
 from contactpose.sim import fingertip, objects
 from contactpose.sim import grasps as simulate
 from contactpose.solvers.track import CONTACT_MODELS, MAX_TRACKS, PoseTrack, TrackSet, add_touch, checked_motion
@@ -96,7 +99,7 @@ ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "results" / "sequential"
 SETTINGS = dict(steps=30, radius_frac=0.02, position_noise_frac=0.0025, normal_noise_deg=1.0, hand_rot_deg=10.0,
                 hand_trans_frac=0.1, slip_deg=1.0, slip_trans_frac=0.005, lost_deg=10.0, lost_frac=0.1, seed=18,
-                contact_model="auto")
+                contact_model="auto", reseed=True)
 METHODS = ("track", "batch", "relocalize", "pf")
 STRATEGIES = ("suggested", "random")
 #: Particles of the particle-filter baseline.
@@ -137,7 +140,8 @@ def sequence(model, mesh, rng, s, seq, methods=METHODS, surface=None):
     if r.best is None:
         return []
     starts = [(h.facets, h.pose) for h in r.hypotheses]
-    tracks = (TrackSet(model, first, starts, tol, contact_model=s["contact_model"])
+    tracks = (TrackSet(model, first, starts, tol, contact_model=s["contact_model"],
+                       seeder=relocalizer(model, tol) if s["reseed"] else None)
               if {"track", "batch"} & set(methods) else None)
     pf = None
     if "pf" in methods:
@@ -159,7 +163,8 @@ def sequence(model, mesh, rng, s, seq, methods=METHODS, surface=None):
             rot = np.nan if T is None else metrics.rotation_error_deg(T, X)
             trans = np.nan if T is None else 1e3 * metrics.translation_error(T, X)
             rows.append(dict(sequence=seq, touch=k, method=m, rot_deg=rot, trans_mm=trans, ms=ms[m],
-                             tracks=len(tracks.tracks) if m == "track" else ""))
+                             tracks=len(tracks.tracks) if m == "track" else "",
+                             reseeds=tracks.reseeds if m == "track" else ""))
         last = contacts
     return rows
 
@@ -197,7 +202,23 @@ def summary(rows, d, s):
                      f"{np.nanmedian(trans):.2f} / {np.nanpercentile(trans, 90):.2f} | "
                      f"{_worst_median(rot, trans, step)} | {known.sum()}, {_worst_median(rot[known], trans[known], step[known])} | "
                      f"{lost:.1%} of {len(last)} | {np.median(ms):.2f} / {np.percentile(ms, 95):.2f} |")
-    return "\n".join(lines)
+    return "\n".join(lines + reseeded(rows))
+
+
+def reseeded(rows):
+    """A line on the track method's reseeds (touches that no track explained: TrackSet), from
+    the ``reseeds`` column, or none when the rows do not have it."""
+    track = [r for r in rows if r["method"] == "track" and str(r.get("reseeds", "")) != ""]
+    if not track:
+        return []
+    so_far, ms = {}, []
+    for r in track:  # each sequence's rows in touch order
+        if int(r["reseeds"]) > so_far.get(r["sequence"], 0):
+            ms.append(float(r["ms"]))
+        so_far[r["sequence"]] = int(r["reseeds"])
+    timing = f", {np.median(ms):.0f} ms per reseeding touch (median)" if ms else ""
+    return ["", f"track: {len(ms)} reseeds in {sum(v > 0 for v in so_far.values())} of {len(so_far)} sequences "
+                f"({len(track)} touches){timing}."]
 
 
 def determined(rows):
@@ -466,12 +487,14 @@ def main(argv=None):
     parser.add_argument("--max-touches", type=int, default=15, help="active: touches per sequence at most")
     parser.add_argument("--contact-model", default=SETTINGS["contact_model"], choices=CONTACT_MODELS,
                         help="the tracks' contact model (PoseTrack)")
+    parser.add_argument("--no-reseed", action="store_true",
+                        help="tracking: no new tracks on a touch that no track explains")
     parser.add_argument("--out", default=str(OUT))
     args = parser.parse_args(argv)
     warnings.simplefilter("ignore")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    s = dict(SETTINGS, steps=args.steps, contact_model=args.contact_model)
+    s = dict(SETTINGS, steps=args.steps, contact_model=args.contact_model, reseed=not args.no_reseed)
     {"active": run_active, "coverage": run_coverage, "speed": run_speed, "tracking": run_tracking}[args.part](args.objects, args, s, out)
     return 0
 

@@ -149,6 +149,18 @@ def test_outlier_fingers_quick_writes_prefixed_files_and_names_the_bad_finger(tm
     assert np.all(c["true_found"] == 1) and np.mean(c["named"]) >= 0.5
 
 
+def test_sequential_counts_the_reseeding_touches():
+    """The summary's reseed line: touches whose reseed count grew, per sequence, and their time."""
+    reseeded = run_all.load("sequential").reseeded
+    counts = {0: [0, 1, 1, 2], 1: [0, 0, 0, 0], 2: [1, 1, 1, 1]}
+    rows = [dict(method=m, sequence=q, touch=k + 1, ms=100.0 * (1 + n) if m == "track" else 1.0,
+                 reseeds=n if m == "track" else "")
+            for q, ns in counts.items() for k, n in enumerate(ns) for m in ("track", "batch")]
+    assert reseeded(rows) == ["", "track: 3 reseeds in 2 of 3 sequences (12 touches), 200 ms per reseeding touch "
+                                  "(median)."]
+    assert reseeded([dict(r, reseeds="") for r in rows]) == []
+
+
 def test_sequential_smoke(tmp_path):
     """experiments/sequential.py on the rock: one short tracking sequence (a row per touch and
     method, finite errors for the track, the summary table; a second run of one method keeps
@@ -161,6 +173,7 @@ def test_sequential_smoke(tmp_path):
     track = [r for r in rows if r["method"] == "track"]
     assert all(np.isfinite(float(r["rot_deg"])) for r in track)
     assert "| track |" in (tmp_path / "summary.md").read_text()
+    assert all(int(r["reseeds"]) >= 0 for r in track) and all(r["reseeds"] == "" for r in rows if r["method"] != "track")
     assert main(["rock", "--sequences", "1", "--steps", "3", "--methods", "pf", "--out", str(tmp_path)]) == 0
     again = sweep.read_rows(tmp_path / "steps.csv")
     timeless = lambda table: sorted(str({k: v for k, v in r.items() if k != "ms"}) for r in table)

@@ -7,6 +7,8 @@ import numpy as np
 import pytest
 
 from contactpose import ContactPoseError, Contacts, ObjectModel, TouchSession, localize
+from contactpose.geometry.metrics import rotation_error_deg
+from contactpose.session import relocalizer
 from contactpose.sim import grasps as simulate
 from contactpose.solvers.track import TrackSet
 from tests.conftest import random_icosahedron
@@ -107,7 +109,8 @@ def test_held_session_is_the_track_set(rock_model):
     g = simulate.grasp(rock_model, rng, n=4, position_noise=NOISE * d, normal_noise_deg=1.0)
     session = TouchSession(rock_model, association_samples=4, rng=np.random.default_rng(5), **_noise(rock_model))
     first = session.add(g.contacts)
-    tracks = TrackSet(rock_model, g.contacts, [(h.facets, h.pose) for h in first.hypotheses], session.tolerance)
+    tracks = TrackSet(rock_model, g.contacts, [(h.facets, h.pose) for h in first.hypotheses], session.tolerance,
+                      seeder=relocalizer(rock_model, session.tolerance))
     draws = np.random.default_rng(5)
     X = g.pose
     for _ in range(6):
@@ -134,6 +137,21 @@ def test_held_session_is_the_track_set(rock_model):
     assert all("sample_covariance" not in h for h in data["hypotheses"][1:])
     with pytest.raises(ContactPoseError, match="static"):
         session.suggest_touch(rng=rng)
+
+
+def test_held_session_reseeds_unless_told_not_to(rock_model):
+    """A held session's tracks reseed on a touch that no track explains, and not with
+    reseed=False; the seeder localizes with the session's noise: its best on a grasp is the truth."""
+    g = simulate.grasp(rock_model, np.random.default_rng(2), n=4, position_noise=NOISE * rock_model.diameter,
+                       normal_noise_deg=1.0)
+    motion = (np.eye(4), 1.0, 0.01 * rock_model.diameter)
+    for reseed in (True, False):
+        session = TouchSession(rock_model, reseed=reseed, **_noise(rock_model))
+        session.add(g.contacts)
+        session.add(g.contacts.permuted([0, 1]), hand_motion=motion)
+        assert (session.tracks.seeder is not None) == reseed
+    facets, pose = relocalizer(rock_model, session.tolerance)(g.contacts)[0]
+    assert rotation_error_deg(pose, g.pose) < 5.0 and facets.shape == (4,)
 
 
 def test_held_object_needs_a_determined_pose_first(carton_model):

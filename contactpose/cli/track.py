@@ -9,6 +9,7 @@ from contactpose.errors import ContactPoseError, check_count
 from contactpose.geometry.metrics import rotation_error_deg, translation_error
 from contactpose.io import jsonfiles, output
 from contactpose.localize import localize
+from contactpose.session import relocalizer
 from contactpose.solvers.track import MAX_TRACKS, TrackSet
 
 
@@ -24,6 +25,8 @@ def register(subparsers):
                         '"sigma_trans": b}, "true_pose": 4x4}, ...]}; step 0 is the first grasp')
     add_noise_options(p)
     p.add_argument("--max-tracks", type=int, default=MAX_TRACKS, metavar="N", help="tracks kept")
+    p.add_argument("--no-reseed", action="store_true",
+                   help="no new tracks, localized afresh, on a touch that no track explains")
     p.add_argument("--association-samples", type=int, default=0, metavar="N",
                    help="write each final track's association covariance from N drawn trajectories (the Laplace "
                         "covariance plus the spread that the choice of facets adds; 20 is the default of the API)")
@@ -48,15 +51,16 @@ def run(args):
     if result.best is None:
         raise ContactPoseError(f"the first grasp has no hypothesis (status {result.status}): nothing to track")
     tracks = TrackSet(model, first, [(h.facets, h.pose) for h in result.hypotheses], result.tolerance,
-                      max_tracks=args.max_tracks)
+                      max_tracks=args.max_tracks, seeder=None if args.no_reseed else relocalizer(model, result.tolerance))
     rows = [_row(0, tracks, truth)]
     for k, (contacts, motion, truth) in enumerate(steps[1:], 1):
         tracks.add(contacts, hand_motion=motion)
         rows.append(_row(k, tracks, truth))
-    for r in rows:
+    for before, r in zip([0] + [r["reseeds"] for r in rows], rows):
         err = "" if r["rot_err_deg"] is None else f"  error {r['rot_err_deg']:.2f} deg, {r['trans_err']:.4g}"
+        reseeded = " (reseeded: no track explained the touch)" if r["reseeds"] > before else ""
         print(f"step {r['step']}: {r['tracks']} track(s), t = [{', '.join(f'{x:.4g}' for x in r['pose'][0:3, 3])}]"
-              + err)
+              + reseeded + err)
     if args.output:
         rng = np.random.default_rng(args.seed)
         spread = ([t.association_covariance(rng, args.association_samples) for t in tracks.tracks]
@@ -69,7 +73,7 @@ def run(args):
 
 def _row(step, tracks, truth):
     pose = tracks.best.pose
-    return dict(step=step, pose=pose, tracks=len(tracks.tracks), score=tracks.best.score,
+    return dict(step=step, pose=pose, tracks=len(tracks.tracks), reseeds=tracks.reseeds, score=tracks.best.score,
                 rot_err_deg=None if truth is None else rotation_error_deg(pose, truth),
                 trans_err=None if truth is None else translation_error(pose, truth))
 

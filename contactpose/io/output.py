@@ -65,7 +65,7 @@ def track_dict(status, rows, tracks, association=None):
     """The track JSON: the first grasp's localize status, the best track's pose at every step
     (with its error where the sequence gives the true pose), and the tracks left at the end.
 
-    rows : [dict(step, pose (4, 4), tracks, score, rot_err_deg, trans_err)]; tracks : TrackSet;
+    rows : [dict(step, pose (4, 4), tracks, reseeds, score, rot_err_deg, trans_err)]; tracks : TrackSet;
     association : None, or each final track's association covariance (6, 6), written as its
     ``association_covariance``.
     """
@@ -76,8 +76,8 @@ def track_dict(status, rows, tracks, association=None):
         "schema_version": SCHEMA_VERSION,
         "units": dict(TRACK_UNITS),
         "status": status,
-        "steps": [{"step": r["step"], "pose": r["pose"].tolist(), "tracks": r["tracks"], "score": r["score"],
-                   "rot_err_deg": r["rot_err_deg"], "trans_err": r["trans_err"]} for r in rows],
+        "steps": [{"step": r["step"], "pose": r["pose"].tolist(), "tracks": r["tracks"], "reseeds": r["reseeds"],
+                   "score": r["score"], "rot_err_deg": r["rot_err_deg"], "trans_err": r["trans_err"]} for r in rows],
         "tracks": finals,
     }
 

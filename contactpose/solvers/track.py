@@ -40,8 +40,11 @@ the association and the contact rows then take that edge when it fits better tha
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import gtsam
 import numpy as np
+from scipy.stats import chi2
 
 from contactpose.contacts import Contacts, Tolerance
 from contactpose.errors import ContactPoseError, check_count
@@ -86,6 +89,13 @@ UNCERTAIN_ASSOCIATION = ("facets",)
 #: A touch's new pose takes at most this many further iSAM2 updates (PoseTrack._settle).
 SETTLE_STEPS = 3
 PRUNE_CHI2 = 38.26
+#: TrackSet: a touch whose χ² exceeds, for every track, χ²'s (1 - SURPRISE_P) quantile with 3
+#: degrees of freedom per contact sets off a reseed from the latest touches, at least
+#: RESEED_CONTACTS contacts.
+SURPRISE_P = 1e-3
+RESEED_CONTACTS = 4
+#: TrackSet: starts tried, at most, per track kept (many of a grasp's starts coincide once refined).
+START_TRIES = 4
 MERGE_DEG = 2.0
 MERGE_FRAC = 0.02
 #: LM settings of the batch reference.
@@ -512,36 +522,100 @@ class TrackSet:
     it explains badly). After each touch, tracks whose pose coincides with a better one's
     (rotation within ``merge_deg`` and translation within ``merge_frac`` of the diameter) are
     merged into it, those more than ``prune_chi2`` above the best are dropped, and at most
-    ``max_tracks`` are kept.
+    ``max_tracks`` are kept. The starts are taken in their order until ``max_tracks`` distinct
+    tracks are held after the first update, or START_TRIES · max_tracks starts were tried.
 
     model, contacts, tolerance : as for PoseTrack; starts : [(facets (n,) int, pose (4, 4))],
-    best first (for example a Result's hypotheses); robust : the contact factor's kernel.
+    best first (for example a Result's hypotheses); robust : the contact factor's kernel;
+    seeder : None, or a callable Contacts -> [(facets, pose)], best first, that localizes
+    contacts afresh (session.relocalizer): then a touch that every track explains worse than
+    SURPRISE_P allows is a sign that the truth is not among them, and :meth:`_reseed` adds
+    tracks from the latest touches.
     """
 
     def __init__(self, model, contacts, starts, tolerance, *, max_tracks=MAX_TRACKS, prune_chi2=PRUNE_CHI2,
-                 merge_deg=MERGE_DEG, merge_frac=MERGE_FRAC, robust="huber", contact_model="auto"):
+                 merge_deg=MERGE_DEG, merge_frac=MERGE_FRAC, robust="huber", contact_model="auto", seeder=None):
         if not starts:
             raise ContactPoseError("a TrackSet needs at least one start (facets, pose)")
+        self.model, self.tolerance, self.seeder = model, tolerance, seeder
+        self.options = dict(robust=robust, contact_model=contact_model)
+        self.history = [(contacts, None)]  # every touch: (Contacts in the world, checked hand motion or None)
+        self.reseeds = 0
         self.max_tracks, self.prune_chi2 = check_count(max_tracks, "max_tracks", minimum=1), float(prune_chi2)
         self.merge = (float(merge_deg), float(merge_frac) * model.diameter)
-        self.tracks = []
-        for facets, pose in starts[:self.max_tracks]:
-            try:
-                self.tracks.append(PoseTrack(model, contacts, facets, pose, tolerance, robust=robust,
-                                             contact_model=contact_model))
-            except ContactPoseError:  # a pose family: it cannot start a track without a prior
-                continue
+        self.tracks, taken, tried = [], 0, min(len(starts), START_TRIES * self.max_tracks)
+        while taken < tried and len(self.tracks) < self.max_tracks:
+            more = starts[taken:min(tried, taken + self.max_tracks - len(self.tracks))]
+            taken += len(more)
+            for facets, pose in more:
+                try:
+                    self.tracks.append(PoseTrack(model, contacts, facets, pose, tolerance, robust=robust,
+                                                 contact_model=contact_model))
+                except ContactPoseError:  # a pose family: it cannot start a track without a prior
+                    continue
+            if self.tracks:
+                self._prune()
         if not self.tracks:
             raise ContactPoseError("no start determines the pose: give starts whose contacts fix it")
-        self._prune()
 
     def add(self, contacts, hand_motion=None):
         """One more touch for every track (facets associated per track). -> the best pose (4, 4)"""
         _check_contacts(contacts)
         motion = checked_motion(hand_motion)
+        before = [t.score for t in self.tracks]
         add_touch(self.tracks, contacts, motion)
+        self.history.append((contacts, motion))
+        surprise = min(t.score - b for t, b in zip(self.tracks, before))
+        if self.seeder is not None and surprise > surprise_threshold(contacts.n):
+            self._reseed()
         self._prune()
         return self.best.pose
+
+    def _recent(self):
+        """The latest touches' contacts, newest first until RESEED_CONTACTS, each moved with the
+        hand into the current touch's world (H_K H_k⁻¹; the slip between them is not known). -> Contacts"""
+        hand, moved = np.eye(4), []
+        for contacts, motion in reversed(self.history):
+            moved.append(contacts.transformed(hand))
+            if sum(c.n for c in moved) >= RESEED_CONTACTS:
+                break
+            if motion is not None:
+                hand = hand @ motion[0]
+        return moved[0].joined(*moved[1:])
+
+    def _reseed(self):
+        """New tracks from the recent touches (:meth:`_recent`) localized afresh by the seeder,
+        those that no track holds yet, at most max_tracks, each replayed over every touch so
+        far (:meth:`_replayed`), so that its score weighs the same evidence as the others'."""
+        poses = []
+        for _, pose in self.seeder(self._recent()):
+            if len(poses) == self.max_tracks:
+                break
+            if not _coincide(pose, np.stack([t.pose for t in self.tracks] + poses), self.merge).any():
+                poses.append(pose)
+        if poses:
+            self.reseeds += 1
+            self.tracks += self._replayed(poses)
+
+    def _replayed(self, poses):
+        """Tracks started at ``poses`` (the current touch's T_world_object, (4, 4) each), the
+        object taken as still in the hand over every earlier touch, and given every touch so
+        far, associated as a track associates them. -> [PoseTrack]"""
+        first = self.history[0][0]
+        hand = self.tracks[0].hand[-1]
+        starts = [rigid_inverse(hand) @ p for p in poses]  # Y: the pose in the first touch's world
+        facets = fg.nearest_fit_facets(self.model, first, np.stack(starts), self.tolerance, None,
+                                       creases=self.tracks[0].contact_model == "smooth")
+        tracks = []
+        for f, y in zip(facets, starts):
+            try:
+                tracks.append(PoseTrack(self.model, first, f, y, self.tolerance, **self.options))
+            except ContactPoseError:
+                continue
+        for contacts, motion in self.history[1:]:
+            if tracks:
+                add_touch(tracks, contacts, motion)
+        return tracks
 
     @property
     def best(self):
@@ -551,8 +625,7 @@ class TrackSet:
     def _prune(self):
         self.tracks.sort(key=lambda t: t.score)
         poses = np.stack([t.pose for t in self.tracks])
-        same = ((rotation_error_deg(poses[:, None], poses[None]) <= self.merge[0])
-                & (translation_error(poses[:, None], poses[None]) <= self.merge[1]))
+        same = _coincide(poses[:, None], poses[None], self.merge)
         kept = []
         for i, t in enumerate(self.tracks):
             if t.score > self.tracks[0].score + self.prune_chi2 or len(kept) == self.max_tracks:
@@ -560,6 +633,19 @@ class TrackSet:
             if not same[i, kept].any():  # merged into a better track with the same pose
                 kept.append(i)
         self.tracks = [self.tracks[i] for i in kept]
+
+
+@lru_cache(maxsize=None)
+def surprise_threshold(n):
+    """The χ² of a touch of n contacts above which no track explains it: χ²'s (1 - SURPRISE_P)
+    quantile with 3 degrees of freedom per contact (22.5 for 2 contacts)."""
+    return float(chi2.ppf(1.0 - SURPRISE_P, 3 * n))
+
+
+def _coincide(a, b, merge):
+    """Whether poses a and b (..., 4, 4), broadcast, are one pose: rotation within merge[0]
+    degrees and translation within merge[1]. -> bool array"""
+    return (rotation_error_deg(a, b) <= merge[0]) & (translation_error(a, b) <= merge[1])
 
 
 def add_touch(tracks, contacts, motion):
@@ -607,8 +693,8 @@ def add_touch(tracks, contacts, motion):
             break
     for t in tracks:
         t._settle()
-    for t, chi2 in zip(tracks, _touch_chi2(tracks)):
-        t.score += chi2
+    for t, touch in zip(tracks, _touch_chi2(tracks)):
+        t.score += touch
 
 
 def _optimum_move(graph, values, key):

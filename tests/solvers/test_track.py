@@ -6,14 +6,16 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from contactpose import localize
 from contactpose.contacts import Contacts, Tolerance
 from contactpose.errors import ContactPoseError
 from contactpose.geometry.metrics import rotation_error_deg
 from contactpose.model.object_model import ObjectModel
+from contactpose.session import relocalizer
 from contactpose.sim import grasps as simulate
 from contactpose.sim import objects
 from contactpose.solvers import factor_graph as fg
-from contactpose.solvers.track import PoseTrack, TrackSet, add_touch, checked_motion
+from contactpose.solvers.track import MERGE_DEG, START_TRIES, PoseTrack, TrackSet, add_touch, checked_motion
 from contactpose.types import PosePrior
 
 
@@ -263,6 +265,91 @@ def test_track_set_keeps_the_hypothesis_that_explains_the_touches(rock_model):
     assert np.linalg.norm(pose[:3, 3] - truth[-1][:3, 3]) < 0.02 * rock.diameter
     with pytest.raises(ContactPoseError, match="at least one start"):
         TrackSet(rock, contacts, [], _tolerance(rock))
+
+
+def test_track_set_fills_its_tracks_with_distinct_starts(carton_model):
+    """Starts that coincide once refined make one track; the TrackSet takes further starts in
+    order until it holds max_tracks distinct ones, trying at most START_TRIES per track."""
+    noise = dict(position_noise=0.0025 * carton_model.diameter, normal_noise_deg=1.0)
+    g = simulate.grasp(carton_model, np.random.default_rng(1), n=4, **noise)
+    starts = [(h.facets, h.pose) for h in localize(carton_model, g.contacts, keep="all", **noise).hypotheses]
+    tol = Tolerance.from_noise(noise["position_noise"], 1.0)
+    assert len(TrackSet(carton_model, g.contacts, starts[:2], tol).tracks) == 2  # two distinct poses
+    twice = TrackSet(carton_model, g.contacts, [starts[0]] * 3 + starts[1:], tol, max_tracks=2)
+    assert len(twice.tracks) == 2
+    assert rotation_error_deg(twice.tracks[0].pose, twice.tracks[1].pose) > MERGE_DEG
+    tried = [starts[0]] * (START_TRIES * 2) + starts[1:]
+    assert len(TrackSet(carton_model, g.contacts, tried, tol, max_tracks=2).tracks) == 1
+
+
+def _quarter_turn(model, contacts, pose, tol):
+    """A wrong start: ``pose`` turned by 90° about its object z axis, on the facets that the
+    contacts fit best there. -> (facets (n,), pose (4, 4))"""
+    turn = np.eye(4)
+    turn[:3, :3] = Rotation.from_rotvec([0.0, 0.0, np.pi / 2]).as_matrix()
+    wrong = pose @ turn
+    return fg.nearest_fit_facets(model, contacts, wrong[None], tol, None)[0], wrong
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_touch_that_no_track_explains_reseeds_the_tracks(rock_model, seed):
+    """A TrackSet started only on a wrong pose (the truth turned by 90°): without a seeder it
+    stays there; with one, a touch that the wrong track cannot explain sets off a reseed from
+    the latest 4 contacts, and the track it adds, replayed over every touch, follows the truth
+    and outscores the wrong one. Started on the truth, the same touches set off no reseed."""
+    rock, tol = rock_model, _tolerance(rock_model)
+    truth, touches = _sequence(rock, np.random.default_rng(seed), 8, noise=1.0, slip=1.0)
+    contacts, _, _ = touches[0]
+    start = _quarter_turn(rock, contacts, truth[0], tol)
+    errors = []
+    for seeder in (None, relocalizer(rock, tol)):
+        tracks = TrackSet(rock, contacts, [start], tol, seeder=seeder)
+        for contacts_k, _, motion in touches[1:]:
+            tracks.add(contacts_k, hand_motion=motion)
+        errors.append(rotation_error_deg(tracks.best.pose, truth[-1]))
+        assert len(tracks.best.touches) == len(touches)
+    assert errors[0] > 45.0
+    assert tracks.reseeds >= 1 and errors[1] < 5.0
+    true_start = TrackSet(rock, contacts, [(touches[0][1], truth[0])], tol, seeder=relocalizer(rock, tol))
+    for contacts_k, _, motion in touches[1:]:
+        true_start.add(contacts_k, hand_motion=motion)
+    assert true_start.reseeds == 0  # the truth explains every touch: nothing to reseed
+
+
+def test_the_latest_touches_are_moved_into_the_current_world(rock_model):
+    """Noise-free touches of one contact of an object that does not slip: the reseed's contacts
+    (the latest 4 touches, newest first, moved by the hand motions since) lie on their true facets' planes,
+    with their normals, at the current true pose."""
+    rock, tol = rock_model, _tolerance(rock_model)
+    truth, touches = _sequence(rock, np.random.default_rng(4), 6, noise=0.0, slip=0.0, per_touch=1)
+    tracks = TrackSet(rock, touches[0][0], [(touches[0][1], truth[0])], tol)
+    for contacts, _, motion in touches[1:]:
+        tracks.add(contacts, hand_motion=motion)
+    recent = tracks._recent()
+    facets = np.concatenate([f for _, f, _ in touches[:-5:-1]])
+    R, t = truth[-1][:3, :3], truth[-1][:3, 3]
+    local = (recent.points - t) @ R
+    planes = rock.planes
+    assert recent.n == 4
+    np.testing.assert_allclose(np.einsum("ij,ij->i", local, planes.normals[facets]) + planes.offsets[facets], 0.0,
+                               atol=1e-9 * rock.diameter)
+    np.testing.assert_allclose(-recent.finger_normals @ R, planes.normals[facets], atol=1e-9)
+
+
+def test_a_replayed_track_is_the_track_that_followed_every_touch(rock_model):
+    """A track replayed from the current pose of a track that followed the touches (the object
+    taken as unmoved in the hand before) takes the same facets for every touch, so its graph
+    is the same: its batch optimum equals the other's."""
+    rock, tol = rock_model, _tolerance(rock_model)
+    truth, touches = _sequence(rock, np.random.default_rng(5), 8, noise=1.0, slip=1.0)
+    tracks = TrackSet(rock, touches[0][0], [(touches[0][1], truth[0])], tol)
+    for contacts, _, motion in touches[1:]:
+        tracks.add(contacts, hand_motion=motion)
+    followed = tracks.best
+    replayed = tracks._replayed([followed.pose])[0]
+    for (_, _, mine), (_, _, theirs) in zip(replayed.touches, followed.touches):
+        np.testing.assert_array_equal(mine, theirs)
+    np.testing.assert_allclose(replayed.batch(), followed.batch(), atol=1e-6 * rock.diameter)
 
 
 def test_associated_touches_are_a_fixed_point_and_isam2_still_equals_batch(rock_model):
