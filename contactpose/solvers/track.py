@@ -547,12 +547,7 @@ class TrackSet:
         while taken < tried and len(self.tracks) < self.max_tracks:
             more = starts[taken:min(tried, taken + self.max_tracks - len(self.tracks))]
             taken += len(more)
-            for facets, pose in more:
-                try:
-                    self.tracks.append(PoseTrack(model, contacts, facets, pose, tolerance, robust=robust,
-                                                 contact_model=contact_model))
-                except ContactPoseError:  # a pose family: it cannot start a track without a prior
-                    continue
+            self.tracks += self._started(contacts, more)
             if self.tracks:
                 self._prune()
         if not self.tracks:
@@ -606,15 +601,20 @@ class TrackSet:
         starts = [rigid_inverse(hand) @ p for p in poses]  # Y: the pose in the first touch's world
         facets = fg.nearest_fit_facets(self.model, first, np.stack(starts), self.tolerance, None,
                                        creases=self.tracks[0].contact_model == "smooth")
+        tracks = self._started(first, list(zip(facets, starts)))
+        for contacts, motion in self.history[1:] if tracks else []:
+            add_touch(tracks, contacts, motion)
+        return tracks
+
+    def _started(self, contacts, starts):
+        """A PoseTrack on ``contacts`` from each start (facets (n,), pose (4, 4)) that determines
+        the pose (a pose family cannot start a track without a prior). -> [PoseTrack]"""
         tracks = []
-        for f, y in zip(facets, starts):
+        for facets, pose in starts:
             try:
-                tracks.append(PoseTrack(self.model, first, f, y, self.tolerance, **self.options))
+                tracks.append(PoseTrack(self.model, contacts, facets, pose, self.tolerance, **self.options))
             except ContactPoseError:
                 continue
-        for contacts, motion in self.history[1:]:
-            if tracks:
-                add_touch(tracks, contacts, motion)
         return tracks
 
     @property
