@@ -9,9 +9,9 @@ from contactpose.contacts import Contacts, Tolerance
 from contactpose.errors import ContactPoseError
 from contactpose.localize import localize
 from contactpose.model.object_model import ObjectModel
-from contactpose.session import TouchSession
 from contactpose.sim import grasps as simulate
 from contactpose.sim import objects
+from contactpose.tracking.session import TouchSession
 from contactpose.types import PosePrior, Result
 
 __all__ = ["ContactPoseError", "Contacts", "ObjectModel", "PosePrior", "Result", "Tolerance", "TouchSession",

@@ -35,9 +35,9 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from contactpose import baselines as bl
-from contactpose import sweep
+from contactpose import peers as bl
 from contactpose.geometry import metrics
+from contactpose.harness import sweep
 from contactpose.localize import localize
 from contactpose.localize import warm_up as warm_localize
 from contactpose.model.object_model import ObjectModel

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from contactpose import sweep
+from contactpose.harness import sweep
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import run_all  # noqa: E402

@@ -23,8 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from contactpose import sweep
 from contactpose.contacts import Tolerance
+from contactpose.harness import sweep
 from contactpose.model.object_model import ObjectModel
 from contactpose.model.table import bin_index, query_limits
 from contactpose.search.pairs import pair_conditions

@@ -62,11 +62,11 @@ from typing import NamedTuple
 
 import numpy as np
 
-from contactpose import touch as touchmod
 from contactpose.contacts import Tolerance
 from contactpose.geometry.metrics import SAME_CLASS_ADDS_FRAC, adds, pose_success
 from contactpose.localize import localize
 from contactpose.model.object_model import ObjectModel
+from contactpose.peers import random_touch
 from contactpose.scoring.classes import MAX_CLASS_HYPOTHESES, classify_poses
 from contactpose.scoring.freespace import free_space_violations
 from contactpose.scoring.infacet import within_noise
@@ -74,8 +74,10 @@ from contactpose.search.pairs import admissible_pairs, pair_conditions
 from contactpose.search.tree import join_tuples
 from contactpose.sim import grasps as simulate
 from contactpose.sim import objects
+from contactpose.sim.touch import simulate_touch, with_contact
 from contactpose.solvers.closed_form import fit_poses
 from contactpose.solvers.residuals import normal_residuals, offset_residuals, to_object_frame, whitened_cost
+from contactpose.tracking import next_touch as touchmod
 from contactpose.types import fit_threshold
 
 log = logging.getLogger("discrimination")
@@ -259,7 +261,7 @@ def true_classes(model, result, pose):
 def touch_episode(model, name, i, grasp, result, strategy, rng, touches):
     """Up to ``touches`` extra touches by one strategy; a row of touch.csv."""
     noise = dict(position_noise=POSITION_NOISE, normal_noise_deg=NORMAL_NOISE_DEG)
-    make = touchmod.suggest_touch if strategy == "suggested" else touchmod.random_touch
+    make = touchmod.suggest_touch if strategy == "suggested" else random_touch
     row = {"mesh": name, "grasp": i, "strategy": strategy, "classes_0": len(result.classes),
            "truth_in_0": any(true_classes(model, result, grasp.pose))}
     contacts, current, count = grasp.contacts, result, len(result.classes)
@@ -269,13 +271,13 @@ def touch_episode(model, name, i, grasp, result, strategy, rng, touches):
             probe = make(model, current, rng=rng, contacts=contacts)
             row[f"plan_ms_{k}"] = 1000 * (time.perf_counter() - start)
             row[f"gain_{k}"] = probe.expected_gain
-            measured = touchmod.simulate_touch(model, grasp.pose, probe, rng, **noise)
+            measured = simulate_touch(model, grasp.pose, probe, rng, **noise)
             row[f"miss_{k}"] = measured is None
             if measured is None:
                 # no contact: the classes that predicted one are ruled out; nothing to re-localize
                 count = int(np.sum(probe.contact_share < 1.0)) if count == len(current.classes) else count
             else:
-                contacts = touchmod.with_contact(contacts, *measured)
+                contacts = with_contact(contacts, *measured)
                 current = localize(model, contacts, **noise)
                 count = len(current.classes)
         row[f"classes_{k}"] = count

@@ -55,7 +55,6 @@ import numpy as np
 import open3d as o3d
 import trimesh
 
-from contactpose import sweep
 from contactpose.contacts import Contacts, Tolerance
 from contactpose.geometry.metrics import (
     SUCCESS_ROT_DEG,
@@ -64,6 +63,7 @@ from contactpose.geometry.metrics import (
     rotation_error_deg,
     translation_error,
 )
+from contactpose.harness import sweep
 from contactpose.localize import localize
 from contactpose.model.object_model import ObjectModel
 from contactpose.scan.reconstruct import ScanOptions, scan_to_mesh, surface_agreement, write_mesh

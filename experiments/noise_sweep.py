@@ -31,8 +31,8 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from contactpose import sweep
 from contactpose.geometry import metrics
+from contactpose.harness import sweep
 from contactpose.localize import localize
 from contactpose.model.object_model import ObjectModel
 from contactpose.sim import grasps as simulate

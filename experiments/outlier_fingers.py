@@ -56,9 +56,9 @@ from pathlib import Path
 
 import numpy as np
 
-from contactpose import sweep
 from contactpose.contacts import Contacts
 from contactpose.geometry import metrics
+from contactpose.harness import sweep
 from contactpose.localize import localize
 from contactpose.model.object_model import ObjectModel
 from contactpose.sim import grasps as simulate

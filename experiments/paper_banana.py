@@ -22,8 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from contactpose import sweep
 from contactpose.geometry import metrics
+from contactpose.harness import sweep
 from contactpose.localize import localize, warm_up
 from contactpose.model.object_model import ObjectModel
 from contactpose.sim import grasps as simulate

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from contactpose import sweep
+from contactpose.harness import sweep
 from contactpose.model.object_model import merged_mesh, mesh_diameter
 from contactpose.sim import fingertip, objects, ycb
 from contactpose.uncertainty.bounds import local_quadric, pose_information

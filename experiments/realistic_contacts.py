@@ -68,12 +68,12 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from contactpose import baselines as bl
-from contactpose import sweep
+from contactpose import peers as bl
 from contactpose.contacts import Contacts
 from contactpose.geometry import metrics
 from contactpose.geometry.raycast import raycaster
 from contactpose.geometry.sampling import perturb_normals
+from contactpose.harness import sweep
 from contactpose.io.modelfile import FORMAT_VERSION
 from contactpose.localize import find_pairs, listed_rows, localize
 from contactpose.localize import warm_up as warm_localize

@@ -40,9 +40,9 @@ import time
 
 import numpy as np
 
-from contactpose import sweep
 from contactpose.contacts import Tolerance
 from contactpose.geometry.metrics import SAME_CLASS_ADDS_FRAC, adds, pose_success, rotation_error_deg, translation_error
+from contactpose.harness import sweep
 from contactpose.localize import localize
 from contactpose.model.object_model import ObjectModel
 from contactpose.search.pairs import admissible_pairs, pair_conditions

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from contactpose import sweep
+from contactpose.harness import sweep
 from contactpose.localize import localize
 from contactpose.localize import warm_up as warm_localize
 from contactpose.model.object_model import ObjectModel

@@ -83,17 +83,18 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
-from contactpose import Contacts, ObjectModel, TouchSession, localize, sweep
-from contactpose import touch as touchmod
-from contactpose.baselines import MemoryParticleFilter, sample_surface
+from contactpose import Contacts, ObjectModel, TouchSession, localize
 from contactpose.contacts import Tolerance
 from contactpose.geometry import metrics
 from contactpose.geometry.sampling import perturb_normals
+from contactpose.harness import sweep
 from contactpose.model.object_model import merged_mesh
-from contactpose.session import relocalizer
+from contactpose.peers import MemoryParticleFilter, random_touch, sample_surface
 from contactpose.sim import fingertip, objects
 from contactpose.sim import grasps as simulate
-from contactpose.solvers.track import CONTACT_MODELS, MAX_TRACKS, PoseTrack, TrackSet, add_touch, checked_motion
+from contactpose.sim.touch import simulate_touch
+from contactpose.tracking.session import relocalizer
+from contactpose.tracking.track import CONTACT_MODELS, MAX_TRACKS, PoseTrack, TrackSet, add_touch, checked_motion
 
 ROOT = Path(__file__).resolve().parent.parent
 OUT = ROOT / "results" / "sequential"
@@ -261,9 +262,9 @@ def active_sequence(model, rng, s, strategy, max_touches):
         else:
             clock = time.perf_counter()
             probe = (session.suggest_touch(rng=rng) if strategy == "suggested"
-                     else touchmod.random_touch(model, session.result, rng=rng, contacts=session.contacts))
+                     else random_touch(model, session.result, rng=rng, contacts=session.contacts))
             plan_ms.append(1e3 * (time.perf_counter() - clock))
-            measured = touchmod.simulate_touch(model, X, probe, rng, **noise)
+            measured = simulate_touch(model, X, probe, rng, **noise)
             if measured is None:
                 misses += 1
                 continue

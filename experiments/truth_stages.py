@@ -46,8 +46,8 @@ from types import SimpleNamespace
 import numpy as np
 from scipy.spatial import cKDTree
 
-from contactpose import sweep
 from contactpose.geometry import metrics
+from contactpose.harness import sweep
 from contactpose.localize import find_pairs, localize
 from contactpose.model.object_model import ObjectModel, merged_mesh
 from contactpose.search.tree import TripleTest, join_tuples

@@ -8,8 +8,8 @@ from pathlib import Path
 import matplotlib.image
 import pytest
 
-from contactpose import bench
 from contactpose.cli import main
+from contactpose.harness import bench
 
 ROOT = Path(__file__).resolve().parents[1]
 ARGV = ["bench", "--models", "banana", "--runs", "2"]

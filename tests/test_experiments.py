@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from contactpose import sweep
+from contactpose.harness import sweep
 
 EXPERIMENTS = Path(__file__).resolve().parent.parent / "experiments"
 sys.path.insert(0, str(EXPERIMENTS))
@@ -96,7 +96,7 @@ def test_scaling_meshes_are_closed_rocks_of_20_f2_facets():
 @pytest.mark.parametrize("name", ["banana", "carton"])
 def test_baseline_contact_cost_is_chi2_at_the_true_pose(name):
     """The baselines' likelihood finds each contact's own facet: χ² of 12 dof at the truth."""
-    from contactpose import baselines
+    from contactpose import peers as baselines
     from contactpose.model.object_model import ObjectModel
     from contactpose.sim import grasps as simulate
     from contactpose.sim import objects
@@ -111,7 +111,7 @@ def test_baseline_contact_cost_is_chi2_at_the_true_pose(name):
 
 
 def test_scaling_series_and_icp_improve_on_a_close_prior():
-    from contactpose import baselines
+    from contactpose import peers as baselines
     from contactpose.geometry import metrics
     from contactpose.model.object_model import ObjectModel
     from contactpose.sim import grasps as simulate
@@ -196,7 +196,7 @@ def test_memory_particle_filter_beats_dead_reckoning_on_a_held_object():
     """A held rock, 15 touches of 2 noisy contacts after known hand motions with a slip of 1°
     and 1 % of the diameter per touch: the particle filter (memory of 4 contacts) stays far
     closer to the truth than the hand motions alone, whose error is the slip's random walk."""
-    from contactpose import baselines
+    from contactpose import peers as baselines
     from contactpose.geometry import metrics
     from contactpose.model.object_model import ObjectModel
     from contactpose.sim import grasps as simulate

@@ -13,8 +13,8 @@ from pathlib import Path
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 #: Never loaded by ``import contactpose``: the harness, the CLI and heavy optional libraries.
-NOT_AT_IMPORT = ("contactpose.cli", "contactpose.bench", "contactpose.sweep", "contactpose.baselines",
-                 "contactpose.viz", "contactpose.demo", "matplotlib", "dask", "distributed", "experiments")
+NOT_AT_IMPORT = ("contactpose.cli", "contactpose.harness", "contactpose.peers", "matplotlib", "dask", "distributed",
+                 "experiments")
 
 
 def test_import_loads_no_harness_cli_or_plotting():

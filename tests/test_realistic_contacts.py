@@ -7,9 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from contactpose import sweep
 from contactpose.geometry import metrics
 from contactpose.geometry.kernels import point_triangle_distance
+from contactpose.harness import sweep
 from contactpose.model.object_model import ObjectModel, merged_mesh
 from contactpose.sim import fingertip, objects
 from contactpose.sim import grasps as simulate

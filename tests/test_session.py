@@ -8,9 +8,9 @@ import pytest
 
 from contactpose import ContactPoseError, Contacts, ObjectModel, TouchSession, localize
 from contactpose.geometry.metrics import rotation_error_deg
-from contactpose.session import relocalizer
 from contactpose.sim import grasps as simulate
-from contactpose.solvers.track import TrackSet
+from contactpose.tracking.session import relocalizer
+from contactpose.tracking.track import TrackSet
 from tests.conftest import random_icosahedron
 from tests.solvers.test_track import _motion
 from tests.test_schema import validate

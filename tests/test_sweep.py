@@ -7,8 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from contactpose import sweep
-from contactpose.sweep import Sweep, SweepError
+from contactpose.harness import sweep
+from contactpose.harness.sweep import Sweep, SweepError
 
 CALLS = []
 

@@ -9,13 +9,15 @@ import pytest
 import trimesh
 from conftest import NORMAL_NOISE_DEG, POSITION_NOISE
 
-from contactpose import touch as T
 from contactpose.cli import next_touch
 from contactpose.contacts import Contacts
 from contactpose.errors import ContactPoseError
 from contactpose.localize import localize
+from contactpose.peers.random_touch import random_touch
 from contactpose.sim import grasps as simulate
+from contactpose.sim.touch import simulate_touch, with_contact
 from contactpose.solvers.residuals import lateral_residuals, offset_residuals, to_object_frame
+from contactpose.tracking import next_touch as T
 
 NOISE = dict(position_noise=POSITION_NOISE, normal_noise_deg=NORMAL_NOISE_DEG)
 
@@ -78,10 +80,10 @@ def ambiguous_grasps(model, count, seed):
 
 def classes_after(model, grasp, result, touch, rng):
     """Pose classes after the probe is made on the true pose (a miss adds nothing)."""
-    contact = T.simulate_touch(model, grasp.pose, touch, rng, **NOISE)
+    contact = simulate_touch(model, grasp.pose, touch, rng, **NOISE)
     if contact is None:
         return len(result.classes)
-    return len(localize(model, T.with_contact(grasp.contacts, *contact), **NOISE).classes)
+    return len(localize(model, with_contact(grasp.contacts, *contact), **NOISE).classes)
 
 
 def test_suggested_touch_beats_random_touch_on_the_box(box_model):
@@ -93,7 +95,7 @@ def test_suggested_touch_beats_random_touch_on_the_box(box_model):
     fewer = {"suggested": 0, "random": 0}
     resolved = {"suggested": 0, "random": 0}
     for k, (g, r) in enumerate(cases):
-        for name, make in (("suggested", T.suggest_touch), ("random", T.random_touch)):
+        for name, make in (("suggested", T.suggest_touch), ("random", random_touch)):
             rng = np.random.default_rng(100 + k)
             touch = make(box_model, r, rng=rng, contacts=g.contacts)
             after = classes_after(box_model, g, r, touch, rng)

@@ -8,7 +8,7 @@ from contactpose.cli.common import add_noise_options, add_parser, model_or_mesh
 from contactpose.errors import ContactPoseError
 from contactpose.io import jsonfiles, output
 from contactpose.localize import localize
-from contactpose.touch import suggest_touch
+from contactpose.tracking.next_touch import suggest_touch
 
 
 def register(subparsers):

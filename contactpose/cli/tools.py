@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from contactpose import bench
 from contactpose.cli.common import add_parser
+from contactpose.harness import bench
 
 
 def register(sub):
@@ -30,7 +30,7 @@ def register(sub):
 
 
 def run_demo(args):
-    from contactpose.demo import run_demo
+    from contactpose.harness.demo import run_demo
 
     return run_demo(seed=args.seed, out_dir=args.out)
 

@@ -9,8 +9,8 @@ from contactpose.errors import ContactPoseError, check_count
 from contactpose.geometry.metrics import rotation_error_deg, translation_error
 from contactpose.io import jsonfiles, output
 from contactpose.localize import localize
-from contactpose.session import relocalizer
-from contactpose.solvers.track import MAX_TRACKS, TrackSet
+from contactpose.tracking.session import relocalizer
+from contactpose.tracking.track import MAX_TRACKS, TrackSet
 
 
 def register(subparsers):

@@ -585,7 +585,7 @@ def test_compression_and_span_bounds_never_drop_a_true_tuple():
 
 def test_bench_grasps_on_a_span_model_lie_within_the_span():
     """contactpose bench draws grasps within a span-bounded model's span, so none is refused."""
-    from contactpose import bench
+    from contactpose.harness import bench
 
     mesh = objects.load("carton")
     span = 0.6 * ObjectModel.from_mesh(mesh).diameter

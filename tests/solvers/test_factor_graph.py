@@ -843,7 +843,7 @@ def test_a_zero_area_facet_leaves_the_smooth_model_of_the_others_unchanged(caplo
     np.testing.assert_allclose(W[:m], plain.normal_whitening(tol.normal_noise, tol.position_noise), rtol=1e-9)
     np.testing.assert_allclose(W[m:], np.broadcast_to(np.eye(3) / tol.normal_noise, (2, 3, 3)))
     g = simulate.grasp(model, np.random.default_rng(2), n=4, position_noise=tol.position_noise, normal_noise_deg=1.0)
-    from contactpose.solvers.track import PoseTrack
+    from contactpose.tracking.track import PoseTrack
 
     track = PoseTrack(model, g.contacts, g.facets, g.pose, tol, contact_model="smooth")
     assert np.isfinite(track.pose).all() and np.isfinite(track.covariance).all()
@@ -975,7 +975,7 @@ def test_smooth_normals_track_an_ellipsoid_closer_than_facet_normals():
     """Contacts on the analytic ellipsoid (exact points and normals, no noise) and exact hand
     motions: tracks on its 5,120-facet tessellation, started 1° and 1 mm off. With the
     interpolated normals the trajectory is far closer to the truth than with facet normals."""
-    from contactpose.solvers.track import PoseTrack
+    from contactpose.tracking.track import PoseTrack
     from tests.solvers.test_track import _motion
 
     model, axes = _ellipsoid_model()

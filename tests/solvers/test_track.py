@@ -11,11 +11,11 @@ from contactpose.contacts import Contacts, Tolerance
 from contactpose.errors import ContactPoseError
 from contactpose.geometry.metrics import rotation_error_deg
 from contactpose.model.object_model import ObjectModel
-from contactpose.session import relocalizer
 from contactpose.sim import grasps as simulate
 from contactpose.sim import objects
 from contactpose.solvers import factor_graph as fg
-from contactpose.solvers.track import MERGE_DEG, START_TRIES, PoseTrack, TrackSet, add_touch, checked_motion
+from contactpose.tracking.session import relocalizer
+from contactpose.tracking.track import MERGE_DEG, START_TRIES, PoseTrack, TrackSet, add_touch, checked_motion
 from contactpose.types import PosePrior
 
 
@@ -85,7 +85,7 @@ def test_a_touch_ends_linearized_near_its_estimate(rock_model):
     relinearization threshold of its estimate, though a slip of 3° takes the first step from
     the prediction past it in many touches (the second step, PoseTrack._settle), with the
     facets given and associated."""
-    from contactpose.solvers import track as trackmod
+    from contactpose.tracking import track as trackmod
 
     rock = rock_model
     for seed in range(6):
@@ -194,7 +194,7 @@ def test_a_pose_family_needs_a_prior(box_model):
 def test_auto_contact_model_takes_smooth_normals_where_facets_are_a_few_sigmas_wide(rock_model):
     """"auto": smooth normals without point-to-facet rows on the YCB banana (median facet
     radius 2.4 σ_x), facet normals with them on the rock (31 σ_x); the threshold is SMOOTH_BELOW."""
-    from contactpose.solvers.track import SMOOTH_BELOW, resolved_contact_model
+    from contactpose.tracking.track import SMOOTH_BELOW, resolved_contact_model
 
     banana = ObjectModel.from_mesh(objects.load("ycb:011_banana"))
     for model, expected in ((banana, "smooth"), (rock_model, "facets")):
@@ -391,8 +391,8 @@ def test_association_covariance_adds_where_lm_puts_the_reassociated_optimum(cont
     last pose's move to the optimum of the graph whose associated touches take their facets
     under the drawn poses. Against the same draw re-associated here and solved by LM to
     convergence from the track's converged estimate, to 1e-3 of δ δᵀ."""
-    from contactpose.solvers import track as trackmod
-    from contactpose.solvers.track import rigid_inverse
+    from contactpose.tracking import track as trackmod
+    from contactpose.tracking.track import rigid_inverse
 
     banana = ObjectModel.from_mesh(objects.load("ycb:011_banana"))
     tol = _tolerance(banana)
@@ -518,7 +518,7 @@ def test_reassociation_stops_where_the_facets_hold_or_come_back(monkeypatch):
     facets not yet tried for it, at most REASSOCIATE times, and end where the association
     under the final pose holds or names facets already tried. The association is recomputed
     here by nearest_fit_facets, independently of add_touch's bookkeeping."""
-    from contactpose.solvers import track as track_module
+    from contactpose.tracking import track as track_module
 
     banana = ObjectModel.from_mesh(objects.load("ycb:011_banana"))
     rng = np.random.default_rng(17)

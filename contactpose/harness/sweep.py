@@ -545,7 +545,7 @@ def add_arguments(parser, *, default_workers=None):
 
 
 #: Repository root (the parent of the package directory): experiments/ and results/ live here.
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def setup_logging(*names):

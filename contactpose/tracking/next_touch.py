@@ -43,7 +43,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from contactpose.contacts import Contacts
 from contactpose.errors import ContactPoseError, check_count
 from contactpose.geometry.raycast import raycaster
 from contactpose.geometry.sampling import uniform_in_triangles
@@ -481,44 +480,3 @@ def _touch(origin, direction, prob, kind, points, normals, groups, centre, **sco
 
 
 # ----------------------------------------------------------------- simulation
-
-def simulate_touch(model, pose, touch, rng=None, *, position_noise=0.0, normal_noise_deg=0.0):
-    """The contact a probe measures on the object at the true ``pose``.
-
-    Returns (point (3,), outward object normal (3,)) in the world frame, with bounded
-    Gaussian noise as in ``simulate.grasp(noise="bounded")``, or None when the probe
-    misses (or starts inside the object).
-    """
-    from contactpose.contacts import Tolerance
-    from contactpose.geometry.sampling import perturb_normals
-
-    kind, points, normals, _ = predict_outcomes(model, pose[None], touch.start[None], touch.direction[None])
-    if kind[0, 0] != CONTACT:
-        return None
-    point, normal = points[0, 0], normals[0, 0]
-    if position_noise > 0 and normal_noise_deg > 0:
-        if rng is None:
-            raise ContactPoseError("simulate_touch needs rng when noise is given")
-        pos_bound, ang_bound = Tolerance.from_noise(position_noise, normal_noise_deg).per_contact_bounds()
-        err = rng.normal(0.0, position_noise, 3)
-        while np.linalg.norm(err) > pos_bound:
-            err = rng.normal(0.0, position_noise, 3)
-        point = point + err
-        normal = perturb_normals(normal[None], np.radians(normal_noise_deg), rng, ang_bound)[0]
-    return point, normal
-
-
-def with_contact(contacts, point, object_normal):
-    """The contacts plus one more (world point, outward object normal)."""
-    return Contacts(np.vstack([contacts.points, point]),
-                    object_normals=np.vstack([contacts.object_normals, object_normal]))
-
-
-def random_touch(model, result, *, rng, contacts=None, n_candidates=200, prior="likelihood", standoff=None):
-    """A baseline probe: one candidate of :func:`candidate_probes` drawn at random, scored
-    like :func:`suggest_touch` would score it."""
-    poses, _, _ = class_poses(model, result, prior)
-    origins, directions, _ = candidate_probes(model, poses, rng, n_candidates, standoff)
-    j = int(rng.integers(len(origins)))
-    return suggest_touch(model, result, (origins[j:j + 1], directions[j:j + 1]), rng=rng, contacts=contacts,
-                         prior=prior)

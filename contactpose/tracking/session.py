@@ -22,13 +22,13 @@ import time
 
 import numpy as np
 
-from contactpose import touch as touchmod
 from contactpose.contacts import Contacts, Tolerance
 from contactpose.errors import ContactPoseError, check_count
 from contactpose.localize import localize
 from contactpose.scoring.rank import hypothesis_arrays
 from contactpose.search.tree import SearchTree
-from contactpose.solvers.track import MAX_TRACKS, TrackSet
+from contactpose.tracking import next_touch as touchmod
+from contactpose.tracking.track import MAX_TRACKS, TrackSet
 from contactpose.types import DEFAULT_POSITION_NOISE_FRAC, HypothesisArrays, HypothesisList, PoseFit, Result
 
 #: Seconds for the search of a reseed (relocalizer), on a touch that no track explains. The

@@ -23,12 +23,12 @@ import numpy as np
 
 from contactpose.contacts import Tolerance
 from contactpose.errors import ContactPoseError
+from contactpose.harness.sweep import machine_description
 from contactpose.io.output import bench_header
 from contactpose.localize import localize, warm_up
 from contactpose.model.object_model import ObjectModel
 from contactpose.sim import grasps as simulate
 from contactpose.sim import objects
-from contactpose.sweep import machine_description
 
 #: The models timed when none are named (``contactpose bench --help`` and the README show them).
 DEFAULT_MODELS = ("banana", "rock1k", "espresso6767", "espresso83846", "ycb:011_banana")
