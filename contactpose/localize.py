@@ -23,6 +23,16 @@ import numpy as np
 
 from contactpose.contacts import Contacts, Tolerance
 from contactpose.errors import ContactPoseError, ContactsError, ResourceError, check_count
+from contactpose.options import (
+    DEFAULT_POSITION_NOISE_FRAC,
+    DEFAULT_REFINE,
+    KEEP,
+    METHODS,
+    OUTLIER_PENALTY,
+    SOLVERS,
+    check_robust,
+    fit_threshold,
+)
 from contactpose.progress import Deadline
 from contactpose.scoring import rank as ranking
 from contactpose.scoring.classes import MAX_CLASS_HYPOTHESES, distinct_poses, pose_classes
@@ -44,19 +54,7 @@ from contactpose.solvers import factor_graph as fg
 from contactpose.solvers import residuals as res
 from contactpose.solvers.closed_form import fit_poses
 from contactpose.solvers.lm import fit_lm_all
-from contactpose.types import (
-    DEFAULT_POSITION_NOISE_FRAC,
-    DEFAULT_REFINE,
-    KEEP,
-    METHODS,
-    OUTLIER_PENALTY,
-    SOLVERS,
-    HypothesisList,
-    PosePrior,
-    Result,
-    check_robust,
-    fit_threshold,
-)
+from contactpose.types import HypothesisList, PosePrior, Result
 
 #: Seconds a search may take by default before it returns what it found (status "time_limit").
 DEFAULT_TIME_LIMIT = 60.0

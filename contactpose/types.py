@@ -9,40 +9,12 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field, fields
-from functools import lru_cache
 
 import numpy as np
 
 from contactpose.contacts import Tolerance
-from contactpose.errors import ContactPoseError, PriorError
-
-METHODS = ("fast", "paper")
-SOLVERS = ("closed-form", "lm", "factor-graph")
-ROBUST = ("huber", "cauchy", "none")
-
-
-def check_robust(robust):
-    """The robust kernel's name, checked against ROBUST. -> robust"""
-    if robust not in ROBUST:
-        raise ContactPoseError(f"robust must be one of {ROBUST}, got {robust!r}")
-    return robust
-
-#: localize(..., keep=...): list the hypotheses that fit within noise, or every distinct pose.
-KEEP = ("fitting", "all")
-#: solver="factor-graph" refines this many of the best closed-form hypotheses (0: all).
-DEFAULT_REFINE = 20
-#: Probability that a correct hypothesis passes the fit test (χ² quantile, 3 dof per contact).
-FIT_CONFIDENCE = 0.9973
-#: With evidence-based probabilities (factor graph), "ambiguous" needs the classes other
-#: than the best to hold more than this probability together.
-AMBIGUOUS_PROBABILITY = 0.05
-#: χ² charged per unassigned finger (max_outliers): the FIT_CONFIDENCE quantile of one
-#: contact's 3 dof, so dropping a finger never beats assigning it within noise.
-OUTLIER_PENALTY = 14.16
-#: Default position noise when none is given: this fraction of the object diameter.
-DEFAULT_POSITION_NOISE_FRAC = 0.0025
-STATUSES = ("ok", "no_hypothesis", "underdetermined", "ambiguous")
-
+from contactpose.errors import PriorError
+from contactpose.schema import RESIDUAL_COLUMNS, SCHEMA_VERSION, json_array, json_number, result_units, tolerance_dict
 
 
 @dataclass
@@ -286,7 +258,7 @@ class HypothesisList(Sequence):
 class Result:
     """The outcome of :func:`localize`.
 
-    status : "ok" | "no_hypothesis" | "underdetermined" | "ambiguous";
+    status : one of options.STATUSES;
     hypotheses : ranked list, best first; timing : seconds per stage; hint : why, when not ok;
     tree : the search's tree (a search.tree.SearchTree), for ``localize(..., tree=)`` to extend.
     """
@@ -356,14 +328,6 @@ class Result:
         return f"Result({', '.join(parts)})"
 
 
-@lru_cache(maxsize=64)
-def fit_threshold(n):
-    """χ² bound that a correct hypothesis of n contacts passes with FIT_CONFIDENCE."""
-    from scipy.stats import chi2
-
-    return float(chi2.ppf(FIT_CONFIDENCE, 3 * n))
-
-
 @dataclass
 class PoseClass:
     """Hypotheses that place the object's surface the same way (ADD-S below
@@ -384,54 +348,3 @@ class PoseClass:
         """This class as JSON (``$defs/pose_class`` of contactpose/data/result.schema.json)."""
         return {"members": np.asarray(self.members).tolist(), "best": int(self.best), "pose": self.pose.tolist(),
                 "chi2": json_number(self.chi2), "probability": json_number(self.probability)}
-
-
-def outlier_penalty(facets):
-    """χ² charged for the unassigned fingers (facet -1) of each row: OUTLIER_PENALTY each, so
-    that leaving a finger out never beats assigning it within noise. (H, n) -> (H,)"""
-    return OUTLIER_PENALTY * np.sum(np.asarray(facets) < 0, axis=-1)
-
-
-# ------------------------------------------------------------- JSON output ---
-
-#: Version of every JSON the CLI writes (contactpose/data/*.schema.json). Bump the minor
-#: number for added keys, the major one for renamed or removed keys.
-SCHEMA_VERSION = "1.1"
-#: The columns of a hypothesis's (n, 5) residuals: the normal residual R n_k + ñ_i (world,
-#: unitless), the offset (point-to-plane; eq. (7) for "paper") and the lateral distance
-#: outside the facet triangle (length units).
-RESIDUAL_COLUMNS = ("normal_x", "normal_y", "normal_z", "offset", "lateral")
-#: Order of every 6-vector and 6×6 covariance in the JSON: GTSAM's Pose3 tangent, rotation first.
-TANGENT_ORDER = ("rot_x", "rot_y", "rot_z", "trans_x", "trans_y", "trans_z")
-#: Angle unit of each angle-valued field of the localize JSON (paths inside a hypothesis
-#: for the last five); the translation parts of covariances and samples are in length units.
-ANGLE_UNITS = {"tolerance.angle_deg": "deg", "tolerance.normal_noise_deg": "deg", "covariance": "rad",
-               "sample_covariance": "rad", "samples.mean": "rad", "samples.covariance": "rad",
-               "samples.intervals": "deg"}
-
-
-def result_units():
-    """The ``units`` block of the localize JSON: lengths in the mesh's own unit (the library
-    does not know its name; metres by default), times in ms, angles per ANGLE_UNITS."""
-    return {"length": "mesh", "time": "ms", "tangent_order": list(TANGENT_ORDER), "angles": dict(ANGLE_UNITS)}
-
-
-def tolerance_dict(tolerance):
-    """Pair tolerances and the noise behind them: lengths in mesh units, angles in degrees."""
-    return {"distance": float(tolerance.distance), "angle_deg": float(np.degrees(tolerance.angle)),
-            "position_noise": float(tolerance.position_noise),
-            "normal_noise_deg": float(np.degrees(tolerance.normal_noise))}
-
-
-def json_number(x):
-    """float(x), or None where x is NaN or infinite (JSON has no such numbers)."""
-    x = float(x)
-    return x if np.isfinite(x) else None
-
-
-def json_array(a):
-    """Nested lists of floats with None for NaN and infinite entries. a : array of any shape"""
-    a = np.asarray(a, dtype=np.float64)
-    if np.isfinite(a).all():
-        return a.tolist()
-    return np.where(np.isfinite(a), a, None).tolist()

@@ -66,6 +66,7 @@ from contactpose.contacts import Tolerance
 from contactpose.geometry.metrics import SAME_CLASS_ADDS_FRAC, adds, pose_success
 from contactpose.localize import localize
 from contactpose.model.object_model import ObjectModel
+from contactpose.options import fit_threshold
 from contactpose.peers import random_touch
 from contactpose.scoring.classes import MAX_CLASS_HYPOTHESES, classify_poses
 from contactpose.scoring.freespace import free_space_violations
@@ -78,7 +79,6 @@ from contactpose.sim.touch import simulate_touch, with_contact
 from contactpose.solvers.closed_form import fit_poses
 from contactpose.solvers.residuals import normal_residuals, offset_residuals, to_object_frame, whitened_cost
 from contactpose.tracking import next_touch as touchmod
-from contactpose.types import fit_threshold
 
 log = logging.getLogger("discrimination")
 

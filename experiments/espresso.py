@@ -66,6 +66,7 @@ from contactpose.geometry.metrics import (
 from contactpose.harness import sweep
 from contactpose.localize import localize
 from contactpose.model.object_model import ObjectModel
+from contactpose.options import STATUSES
 from contactpose.scan.reconstruct import ScanOptions, scan_to_mesh, surface_agreement, write_mesh
 from contactpose.sim import grasps as simulate
 from contactpose.sim.espresso import SIZE, espresso_machine, espresso_parts
@@ -76,7 +77,6 @@ CROP = (-1.0, -1.0, 0.035, 1.0, 1.0, 1.0)
 #: Probe distance along the normal for the exterior test, metres.
 EXTERIOR_PROBE = 0.0005
 STAGES = ("pairs", "tree", "pose", "rank")
-STATUSES = ("ok", "underdetermined", "ambiguous", "no_hypothesis")
 #: Bins (degrees) of a grasp's worst nearest-facet normal error, for the success breakdown.
 NORMAL_ERR_EDGES = (0, 5, 10, 20, 45, 180)
 

@@ -24,9 +24,9 @@ from contactpose.geometry import metrics
 from contactpose.harness import sweep
 from contactpose.localize import localize
 from contactpose.model.object_model import ObjectModel
+from contactpose.options import STATUSES
 from contactpose.sim import grasps as simulate
 from contactpose.sim import objects
-from contactpose.types import STATUSES
 
 NAME = "fingers_sweep"
 
@@ -62,7 +62,7 @@ def make_sweep(cfg):
 # --------------------------------------------------------------------------- figure
 
 STATUS_COLORS = {"ok": "tab:green", "ambiguous": "tab:orange", "underdetermined": "tab:purple",
-                 "no_hypothesis": "tab:red"}
+                 "no_hypothesis": "tab:red", "poor_fit": "tab:brown", "time_limit": "tab:gray"}
 
 
 def plot(out_dir):

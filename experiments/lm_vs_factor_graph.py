@@ -45,6 +45,7 @@ from contactpose.contacts import Contacts, Tolerance
 from contactpose.geometry.metrics import SAME_CLASS_ADDS_FRAC, adds, pose_success, rotation_error_deg, translation_error
 from contactpose.localize import localize
 from contactpose.model.object_model import ObjectModel
+from contactpose.options import AMBIGUOUS_PROBABILITY, DEFAULT_REFINE, OUTLIER_PENALTY, ROBUST
 from contactpose.scoring.classes import pose_classes
 from contactpose.scoring.rank import closed_form_arrays, refined_arrays
 from contactpose.scoring.status import ambiguous
@@ -53,7 +54,7 @@ from contactpose.sim import objects
 from contactpose.solvers import factor_graph as fg
 from contactpose.solvers.lm import fit_lm_all
 from contactpose.solvers.residuals import normal_residuals, paper_cost, paper_offset_residuals
-from contactpose.types import AMBIGUOUS_PROBABILITY, DEFAULT_REFINE, OUTLIER_PENALTY, ROBUST, PosePrior
+from contactpose.types import PosePrior
 
 log = logging.getLogger("lm_vs_factor_graph")
 

@@ -35,9 +35,10 @@ from contactpose.geometry import metrics
 from contactpose.harness import sweep
 from contactpose.localize import localize
 from contactpose.model.object_model import ObjectModel
+from contactpose.options import SOLVERS
 from contactpose.sim import grasps as simulate
 from contactpose.sim import objects
-from contactpose.types import SOLVERS, PosePrior
+from contactpose.types import PosePrior
 
 NAME = "noise_sweep"
 

@@ -79,15 +79,14 @@ from contactpose.localize import find_pairs, listed_rows, localize
 from contactpose.localize import warm_up as warm_localize
 from contactpose.model.object_model import ObjectModel, merged_mesh
 from contactpose.model.table import estimate_bytes
+from contactpose.options import STATUSES, fit_threshold
 from contactpose.scoring.infacet import within_noise
 from contactpose.sim import fingertip, objects, ycb
 from contactpose.sim import grasps as simulate
-from contactpose.types import fit_threshold
 
 NAME = "realistic_contacts"
 log = logging.getLogger(NAME)
 METHODS = ("fast", "paper", "icp-multistart", "scaling-series")
-STATUSES = ("ok", "poor_fit", "no_hypothesis", "underdetermined", "ambiguous", "time_limit")
 #: Where the true assignment is lost, in pipeline order; "first": it is ranked first.
 STAGES = ("table", "tree", "fit", "ranking", "first")
 STAGE_TEXT = {"table": "table: a true pair not in S_ij", "tree": "tree: pairs there, tuple not listed",

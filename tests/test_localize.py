@@ -24,6 +24,7 @@ from contactpose.geometry.metrics import (
     rotation_error_deg,
 )
 from contactpose.localize import localize
+from contactpose.options import fit_threshold
 from contactpose.scoring.classes import MAX_CLASS_HYPOTHESES, pose_classes
 from contactpose.search.pairs import admissible_pairs, pair_conditions
 from contactpose.search.tree import TripleTest, join_tuples, sorted_rows
@@ -31,7 +32,7 @@ from contactpose.sim import grasps as simulate
 from contactpose.solvers import residuals as res
 from contactpose.solvers.closed_form import fit_poses, wahba
 from contactpose.solvers.lm import eq7_residuals, fit_lm
-from contactpose.types import PosePrior, fit_threshold
+from contactpose.types import PosePrior
 
 NOISE = dict(position_noise=POSITION_NOISE, normal_noise_deg=NORMAL_NOISE_DEG)
 

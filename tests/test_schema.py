@@ -20,8 +20,9 @@ from contactpose.cli import main
 from contactpose.contacts import Contacts
 from contactpose.io import jsonfiles, output
 from contactpose.localize import localize
+from contactpose.options import STATUSES
+from contactpose.schema import RESIDUAL_COLUMNS, SCHEMA_VERSION, TANGENT_ORDER, result_units
 from contactpose.sim import grasps as simulate
-from contactpose.types import RESIDUAL_COLUMNS, SCHEMA_VERSION, STATUSES, TANGENT_ORDER, result_units
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 CONTACTS = str(EXAMPLES / "banana_contacts.json")

@@ -20,13 +20,14 @@ from contactpose.contacts import Contacts, Tolerance
 from contactpose.errors import ContactPoseError
 from contactpose.localize import find_pairs, join_hypotheses, localize
 from contactpose.model import ObjectModel
+from contactpose.options import AMBIGUOUS_PROBABILITY, fit_threshold
 from contactpose.progress import Deadline
 from contactpose.scoring.infacet import within_noise
 from contactpose.scoring.status import ambiguous, status
 from contactpose.search.tree import expected_tuples, join_tuples
 from contactpose.sim import grasps as simulate
 from contactpose.sim import objects
-from contactpose.types import AMBIGUOUS_PROBABILITY, PoseClass, fit_threshold
+from contactpose.types import PoseClass
 
 NOISE = dict(position_noise=0.0005, normal_noise_deg=1.0)
 

@@ -9,8 +9,8 @@ import warnings
 
 from contactpose.localize import localize
 from contactpose.model import ObjectModel
+from contactpose.options import DEFAULT_POSITION_NOISE_FRAC
 from contactpose.sim import objects
-from contactpose.types import DEFAULT_POSITION_NOISE_FRAC
 
 #: Exit codes of ``contactpose`` (documented in the README's command-line section).
 EXIT_OK = 0

@@ -14,7 +14,7 @@ from contactpose.cli.common import (
 )
 from contactpose.io import jsonfiles
 from contactpose.localize import DEFAULT_TIME_LIMIT, POOR_FIT_LISTED, localize
-from contactpose.types import KEEP, METHODS, ROBUST, SOLVERS
+from contactpose.options import KEEP, METHODS, ROBUST, SOLVERS
 
 #: The robust kernel when --robust is not given (None in the parser, to tell a given value).
 DEFAULT_ROBUST = library_default(localize, "robust")

@@ -10,9 +10,9 @@ from contactpose.geometry.metrics import rotation_error_deg, translation_error
 from contactpose.harness.viz import plot_localization
 from contactpose.localize import localize, warm_up
 from contactpose.model.object_model import ObjectModel
+from contactpose.options import fit_threshold
 from contactpose.sim import grasps as simulate
 from contactpose.sim import objects
-from contactpose.types import fit_threshold
 
 #: Tolerance settings of the demo (the paper gives none): 0.5 mm and 1° sensor noise.
 DEMO_POSITION_NOISE = 0.0005

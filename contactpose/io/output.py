@@ -21,7 +21,7 @@ from importlib import resources
 
 import numpy as np
 
-from contactpose.types import SCHEMA_VERSION
+from contactpose.schema import SCHEMA_VERSION
 
 SCHEMA_KINDS = ("result", "touch", "scan_report", "bench", "track")
 #: Units of the next-touch JSON: lengths in mesh units, information in bits.

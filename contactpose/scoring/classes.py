@@ -11,7 +11,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from contactpose.geometry.metrics import SAME_CLASS_ADDS_FRAC, adds_many, pose_embedding, rms_displacement
-from contactpose.types import PoseClass, fit_threshold
+from contactpose.options import fit_threshold
+from contactpose.types import PoseClass
 
 #: At most this many well-fitting hypotheses are grouped into pose classes.
 MAX_CLASS_HYPOTHESES = 256

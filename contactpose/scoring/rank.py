@@ -11,11 +11,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from contactpose.options import fit_threshold, outlier_penalty
 from contactpose.scoring.infacet import polished_poses
 from contactpose.solvers import residuals as res
 from contactpose.solvers.closed_form import fit_poses
 from contactpose.solvers.surface import needs_surface, surface_fit
-from contactpose.types import HypothesisArrays, fit_threshold, outlier_penalty
+from contactpose.types import HypothesisArrays
 
 #: localize(..., surface=True) fits this many of its best hypotheses on the surface (solvers.surface).
 SURFACE_REFINE = 8

@@ -23,7 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from contactpose.model.symmetry import symmetries
-from contactpose.types import AMBIGUOUS_PROBABILITY, fit_threshold
+from contactpose.options import AMBIGUOUS_PROBABILITY, fit_threshold
 
 
 def status(model, contacts, arrays, classes, tolerance, fits=None, truncated=False):

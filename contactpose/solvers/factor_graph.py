@@ -92,9 +92,10 @@ from contactpose.contacts import Contacts
 from contactpose.errors import ContactPoseError, check_count
 from contactpose.geometry.kernels import _axpy, _cross, _dot, _t, closest_point_triangle, fit_cost, normal_misfit, segment_d2
 from contactpose.geometry.metrics import skew
+from contactpose.options import DEFAULT_REFINE, check_robust, fit_threshold, outlier_penalty
 from contactpose.solvers import residuals as res
 from contactpose.solvers.closed_form import wahba
-from contactpose.types import DEFAULT_REFINE, HypothesisArrays, PosePrior, check_robust, fit_threshold, outlier_penalty
+from contactpose.types import HypothesisArrays, PosePrior
 
 log = logging.getLogger(__name__)
 

@@ -25,11 +25,12 @@ import numpy as np
 from contactpose.contacts import Contacts, Tolerance
 from contactpose.errors import ContactPoseError, check_count
 from contactpose.localize import localize
+from contactpose.options import DEFAULT_POSITION_NOISE_FRAC
 from contactpose.scoring.rank import hypothesis_arrays
 from contactpose.search.tree import SearchTree
 from contactpose.tracking import next_touch as touchmod
 from contactpose.tracking.track import MAX_TRACKS, TrackSet
-from contactpose.types import DEFAULT_POSITION_NOISE_FRAC, HypothesisArrays, HypothesisList, PoseFit, Result
+from contactpose.types import HypothesisArrays, HypothesisList, PoseFit, Result
 
 #: Seconds for the search of a reseed (relocalizer), on a touch that no track explains. The
 #: tree gets a quarter of it, the pair stage included (localize.TREE_SHARE). At 1 s the pair

@@ -49,9 +49,10 @@ from scipy.stats import chi2
 from contactpose.contacts import Contacts, Tolerance
 from contactpose.errors import ContactPoseError, check_count
 from contactpose.geometry.metrics import rigid_inverse, rotation_error_deg, translation_error
+from contactpose.options import check_robust
 from contactpose.solvers import factor_graph as fg
 from contactpose.solvers.surface import surface_factor
-from contactpose.types import PosePrior, check_rigid, check_robust
+from contactpose.types import PosePrior, check_rigid
 
 #: A track's iSAM2 relinearizes, at every update, each variable that moved by more than this
 #: since its linearization (tangent norm: 1.15° in rotation; 20 mm when lengths are metres).

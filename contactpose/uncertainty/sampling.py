@@ -44,9 +44,9 @@ from numba import njit
 from contactpose.errors import ContactPoseError, check_count
 from contactpose.model.memory import check_fits
 from contactpose.model.surface import land
+from contactpose.schema import json_array, json_number
 from contactpose.scoring.rank import closed_form_arrays
 from contactpose.solvers import factor_graph as fg
-from contactpose.types import json_array, json_number
 
 log = logging.getLogger(__name__)
 

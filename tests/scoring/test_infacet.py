@@ -11,11 +11,11 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from contactpose.localize import localize
+from contactpose.options import fit_threshold
 from contactpose.scoring.infacet import lowest_chi2_bound, within_noise
 from contactpose.scoring.rank import closed_form_arrays
 from contactpose.sim import grasps as simulate
 from contactpose.solvers import residuals as res
-from contactpose.types import fit_threshold
 
 POSITION_NOISE, NORMAL_NOISE_DEG = 0.0005, 1.0
 

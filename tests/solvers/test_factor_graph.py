@@ -596,7 +596,7 @@ def test_screen_and_polish_match_a_tight_single_pass(rock):
 def test_unassigned_finger_equals_refining_the_other_contacts(rock):
     """A hypothesis with facet -1 for one finger refines exactly like its other contacts alone;
     its χ² carries localize's OUTLIER_PENALTY on top."""
-    from contactpose.types import OUTLIER_PENALTY
+    from contactpose.options import OUTLIER_PENALTY
 
     rng = np.random.default_rng(23)
     tol = _tolerance(rock)

@@ -13,10 +13,11 @@ import pytest
 from contactpose.contacts import Contacts, Tolerance
 from contactpose.errors import ContactPoseError
 from contactpose.localize import localize
+from contactpose.options import ROBUST
 from contactpose.scoring.rank import closed_form_arrays
 from contactpose.sim import grasps as simulate
 from contactpose.solvers import factor_graph as fg
-from contactpose.types import ROBUST, PosePrior
+from contactpose.types import PosePrior
 from contactpose.uncertainty import sampling as unc
 
 
