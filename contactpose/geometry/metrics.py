@@ -12,22 +12,6 @@ SUCCESS_TRANS_FRAC = 0.05
 SAME_CLASS_ADDS_FRAC = 0.05
 
 
-def skew(v):
-    """[v]×, the matrix of v × ·, for each vector of v (..., 3) -> (..., 3, 3)."""
-    v = np.asarray(v, dtype=np.float64)
-    S = np.zeros(v.shape[:-1] + (3, 3))
-    S[..., 0, 1], S[..., 0, 2], S[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
-    return S - np.swapaxes(S, -1, -2)
-
-
-def rigid_inverse(T):
-    """The inverse of a rigid transform T (4, 4): [Rᵀ, -Rᵀ t]."""
-    inv = np.eye(4)
-    inv[:3, :3] = T[:3, :3].T
-    inv[:3, 3] = -T[:3, 3] @ T[:3, :3]
-    return inv
-
-
 def rotation_error_deg(T_est, T_true):
     """Angle of R_estᵀ R_true in degrees. T_* : (..., 4, 4) -> (...)"""
     R = np.einsum("...ji,...jk->...ik", T_est[..., :3, :3], T_true[..., :3, :3])

@@ -46,7 +46,7 @@ from contactpose.geometry.kernels import (  # 3-tuple kernels
     _sub,
     _t,
 )
-from contactpose.solvers.surface import moved
+from contactpose.geometry.se3 import retract
 
 #: Alternating-minimisation steps before the bound is taken (it is valid after any number).
 STEPS = 6
@@ -101,7 +101,7 @@ def lowest_chi2_bound(model, contacts, arrays, rows, tolerance, threshold=None, 
                  (bound > threshold) & ((bound <= RELINEARISE_BAND * threshold) | ~determined))
         if not again.any():
             break
-        R[again], t[again] = moved(R[again], t[again], xi[again])
+        R[again], t[again] = retract(R[again], t[again], xi[again])
         bound[again], xi[again] = _bounds(R[again], t[again], *(a[again] for a in planes), contacts,
                                           *(w[again] for w in weights), determined[again], free[again], shape, steps)
     return bound
@@ -114,7 +114,7 @@ def polished_poses(model, contacts, arrays, rows, tolerance, threshold, rounds=P
     χ² within ``threshold`` can reach. rows : (K,) int  ->  R (K, 3, 3), t (K, 3)"""
     R, t, planes, weights, determined, free, shape = _problem(model, contacts, arrays, rows, tolerance, threshold)
     for _ in range(rounds):
-        R, t = moved(R, t, _bounds(R, t, *planes, contacts, *weights, determined, free, shape, STEPS)[1])
+        R, t = retract(R, t, _bounds(R, t, *planes, contacts, *weights, determined, free, shape, STEPS)[1])
     return R, t
 
 

@@ -91,7 +91,7 @@ from scipy.spatial.transform import Rotation
 from contactpose.contacts import Contacts
 from contactpose.errors import ContactPoseError, check_count
 from contactpose.geometry.kernels import _axpy, _cross, _dot, _t, closest_point_triangle, fit_cost, normal_misfit, segment_d2
-from contactpose.geometry.metrics import skew
+from contactpose.geometry.se3 import hat, hat3
 from contactpose.options import DEFAULT_REFINE, check_robust, fit_threshold, outlier_penalty
 from contactpose.solvers import residuals as res
 from contactpose.solvers.closed_form import wahba
@@ -486,7 +486,7 @@ def _smooth_normal_rows(T, data, smooth, place, inv_sn, inv_sx, e, J):
         nu = m / size
         e[rows] = W @ (nu + w)
         Dn = (np.eye(3) - np.outer(nu, nu)) @ M / size if place else np.zeros((3, 3))
-        J[rows, :3] = W @ (Dn @ _hat(p) + _hat(w))  # Dn, the hats: fresh, contiguous
+        J[rows, :3] = W @ (Dn @ hat3(p) + hat3(w))  # Dn, the hats: fresh, contiguous
         J[rows, 3:] = -(W @ Dn)
         best = e[rows] @ e[rows]
         for k in range(3):
@@ -516,12 +516,12 @@ def _crease_rows(p, nu, n_f, edge, place, inv_sn, inv_sx, out, J):
     out[0] = along * inv_sn
     out[1] = (size - 1.0) * inv_sn
     out[2] = (u @ (p - a)) * inv_sx
-    hat_nu = _hat(nu)
+    hat_nu = hat3(nu)
     J[0, :3] = (ax @ hat_nu) * inv_sn
     J[1, :3] = (np.array(star) @ hat_nu) * inv_sn
     J[0:2, 3:] = 0.0
     if place:
-        J[2, :3] = (u @ _hat(p)) * inv_sx
+        J[2, :3] = (u @ hat3(p)) * inv_sx
         J[2, 3:] = -u * inv_sx
     else:
         J[2] = 0.0
@@ -542,12 +542,6 @@ def _arc_nearest(nu, n_f, edge):
     star = (proj[0] / size, proj[1] / size, proj[2] / size)
     inside = _dot(_cross(_t(n_f), star), ax) > 0.0 and _dot(_cross(star, n_g), ax) > 0.0
     return along, size, star, inside
-
-
-@njit(cache=True)
-def _hat(v):
-    """[v]× of one vector (3,) -> (3, 3), inside compiled kernels (geometry.metrics.skew outside)."""
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
 def touch_chi2(T, data, params, smooth=None):
@@ -985,9 +979,9 @@ def association_weights(p, normals, tolerance, pose_covariance=None):
     if pose_covariance is None:
         return np.full(p.shape[:2], base)
     P = np.broadcast_to(np.asarray(pose_covariance, dtype=np.float64), (len(p), 6, 6))
-    Jp = np.concatenate([skew(p), np.broadcast_to(-np.eye(3), p.shape + (3,))], axis=-1)  # (H, n, 3, 6)
+    Jp = np.concatenate([hat(p), np.broadcast_to(-np.eye(3), p.shape + (3,))], axis=-1)  # (H, n, 3, 6)
     point_var = np.einsum("hcij,hjk,hcik->hc", Jp, P, Jp) / 3.0
-    Jn = skew(normals)
+    Jn = hat(normals)
     normal_var = np.einsum("hcij,hjk,hcik->hc", Jn, P[:, :3, :3], Jn) / 2.0
     return (tolerance.position_noise ** 2 + point_var) / (tolerance.normal_noise ** 2 + normal_var)
 

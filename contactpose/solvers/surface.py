@@ -20,10 +20,9 @@ from functools import partial
 import gtsam
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.spatial.transform import Rotation
 
 from contactpose.geometry.kernels import point_triangle_distance
-from contactpose.geometry.metrics import skew
+from contactpose.geometry.se3 import hat, retract
 from contactpose.model.surface import land
 
 #: Residual evaluations of one stage of a surface fit.
@@ -40,12 +39,6 @@ GATE_TOL = 1e-9
 #: whose cone holds the contact's normal wins over the face the contact sits on, so the fit
 #: is drawn to it instead of settling on the face (research/surface.md).
 CONTINUATION = (4.0, 1.0)
-
-
-def moved(R, t, xi):
-    """Poses (R (K, 3, 3), t (K, 3)) moved by right perturbations ξ = (ω, v) (K, 6): R Exp(ω), t + R v."""
-    R = R @ Rotation.from_rotvec(xi[:, :3]).as_matrix()
-    return R, t + np.einsum("kij,kj->ki", R, xi[:, 3:])
 
 
 def object_frame(contacts, R, t):
@@ -77,7 +70,7 @@ class _Problem:
 
     def _landing(self, xi):
         if self._at is None or not np.array_equal(self._at[0], xi):
-            R, t = moved(self.R[None], self.t[None], xi[None])
+            R, t = retract(self.R[None], self.t[None], xi[None])
             p, nu = object_frame(self.contacts, R[0], t[0])
             got = landing(self.model, self.contacts, R[0], t[0], self.start, self.tolerance, self.widen)
             self._at = (xi.copy(), p[self.used], nu[self.used], got)
@@ -94,9 +87,9 @@ class _Problem:
         Jr = gtsam.Rot3.ExpmapDerivative(xi[:3])
         k = len(p)
         dp = np.zeros((k, 3, 6))  # p = Exp(ω)ᵀ p₀ − v, ν = Exp(ω)ᵀ ν₀
-        dp[:, :, :3] = skew(p + xi[3:]) @ Jr
+        dp[:, :, :3] = hat(p + xi[3:]) @ Jr
         dp[:, :, 3:] = -np.eye(3)
-        dnu = skew(nu) @ Jr
+        dnu = hat(nu) @ Jr
         Jp = _position_projector(got.pcode[u], got.pdir[u]) @ dp / self.sx
         Jn = np.zeros((k, 3, 6))
         Jn[:, :, :3] = _normal_projector(nu, got.cone[u], got.ncode[u], got.arc[u]) @ dnu / self.sn
@@ -158,7 +151,7 @@ def _stage(model, contacts, R, t, start, tolerance, widen):
     problem = _Problem(model, contacts, R, t, start, tolerance, widen)
     fit = least_squares(problem.residuals, np.zeros(6), jac=problem.jacobian, method="lm", x_scale="jac",
                         xtol=XTOL, ftol=XTOL, max_nfev=MAX_EVALUATIONS)
-    R, t = moved(R[None], t[None], fit.x[None])
+    R, t = retract(R[None], t[None], fit.x[None])
     return R[0], t[0]
 
 

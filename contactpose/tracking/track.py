@@ -48,7 +48,8 @@ from scipy.stats import chi2
 
 from contactpose.contacts import Contacts, Tolerance
 from contactpose.errors import ContactPoseError, check_count
-from contactpose.geometry.metrics import rigid_inverse, rotation_error_deg, translation_error
+from contactpose.geometry.metrics import rotation_error_deg, translation_error
+from contactpose.geometry.se3 import inverse
 from contactpose.options import check_robust
 from contactpose.solvers import factor_graph as fg
 from contactpose.solvers.surface import surface_factor
@@ -266,7 +267,7 @@ class PoseTrack:
         graph.push_back(self._others)
         for i, (k, contacts, facets) in enumerate(self.touches):
             if self._twins[i] is None:
-                local = contacts.transformed(rigid_inverse(self.hand[k]))
+                local = contacts.transformed(inverse(self.hand[k]))
                 self._twins[i] = self._factors(local, facets, k, twin=True)[0]
             for twin in self._twins[i]:
                 graph.add(twin)
@@ -349,7 +350,7 @@ class PoseTrack:
         k = len(self.hand) - 1
         self.touches.append((k, contacts, facets))
         self._associated.append(False)
-        self._local = contacts.transformed(rigid_inverse(self.hand[k])) if local is None else local
+        self._local = contacts.transformed(inverse(self.hand[k])) if local is None else local
         self._twins.append(None)
         contact_factors, self._packed = self._factors(self._local, facets, k, packing=packing)
         for i in range(factors.size()):
@@ -452,7 +453,7 @@ class PoseTrack:
                                               creases=self.contact_model == "smooth")
                 changed |= bool((again != facets).any())
                 facets = again
-            for factor in self._factors(contacts.transformed(rigid_inverse(self.hand[k])), facets, k)[0]:
+            for factor in self._factors(contacts.transformed(inverse(self.hand[k])), facets, k)[0]:
                 graph.add(factor)
         return graph if changed else None
 
@@ -599,7 +600,7 @@ class TrackSet:
         far, associated as a track associates them. -> [PoseTrack]"""
         first = self.history[0][0]
         hand = self.tracks[0].hand[-1]
-        starts = [rigid_inverse(hand) @ p for p in poses]  # Y: the pose in the first touch's world
+        starts = [inverse(hand) @ p for p in poses]  # Y: the pose in the first touch's world
         facets = fg.nearest_fit_facets(self.model, first, np.stack(starts), self.tolerance, None,
                                        creases=self.tracks[0].contact_model == "smooth")
         tracks = self._started(first, list(zip(facets, starts)))
@@ -674,7 +675,7 @@ def add_touch(tracks, contacts, motion):
     hands, local = [t._hand_after(motion) for t in tracks], {}
     for h in hands:  # the touch in each hand frame, once per distinct hand pose
         if h.tobytes() not in local:
-            local[h.tobytes()] = contacts.transformed(rigid_inverse(h))
+            local[h.tobytes()] = contacts.transformed(inverse(h))
     locals_ = [local[h.tobytes()] for h in hands]
     for t, f, here, packing in zip(tracks, facets, locals_, _packings(tracks, locals_, facets)):
         t._step(contacts, f, motion, score=False, local=here, packing=packing)

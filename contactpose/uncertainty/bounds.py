@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from contactpose.geometry.metrics import skew
+from contactpose.geometry.se3 import hat
 
 __all__ = ["local_quadric", "pose_information", "tangent_basis"]
 
@@ -59,13 +59,13 @@ def pose_information(points, normals, position_noise, normal_noise, hessians=Non
     for i, (x, nu) in enumerate(zip(points, normals)):
         T = tangent_basis(nu) if tangents is None else tangents[i]
         J_n = np.zeros((2, 6 + slides))
-        J_n[:, :3] = -T.T @ skew(nu)
+        J_n[:, :3] = -T.T @ hat(nu)
         if hessians is None:
             j_o = np.concatenate([np.cross(x, nu), nu])
             info[:6, :6] += np.outer(j_o, j_o) / position_noise**2
         else:
             J_p = np.zeros((3, 6 + slides))
-            J_p[:, :3], J_p[:, 3:6], J_p[:, 6 + 2 * i:8 + 2 * i] = -skew(x), np.eye(3), T
+            J_p[:, :3], J_p[:, 3:6], J_p[:, 6 + 2 * i:8 + 2 * i] = -hat(x), np.eye(3), T
             J_n[:, 6 + 2 * i:8 + 2 * i] = -hessians[i]
             info += J_p.T @ J_p / position_noise**2
         info += J_n.T @ J_n / normal_noise**2

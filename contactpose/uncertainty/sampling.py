@@ -39,9 +39,9 @@ from dataclasses import KW_ONLY, dataclass
 
 import emcee
 import numpy as np
-from numba import njit
 
 from contactpose.errors import ContactPoseError, check_count
+from contactpose.geometry import se3
 from contactpose.model.memory import check_fits
 from contactpose.model.surface import land
 from contactpose.schema import json_array, json_number
@@ -80,109 +80,6 @@ class SamplingWarning(UserWarning):
     """The chain is too short to estimate its autocorrelation time reliably."""
 
 
-# --------------------------------------------------------------- SE(3) maps ---
-
-@njit(cache=True)
-def _exp_into(w0, w1, w2, v0, v1, v2, T):
-    """T[:3, :4] = Exp(ξ) of GTSAM's Pose3: R = exp([ω]×) (Rodrigues), t = J_l(ω) v,
-    J_l = I + a [ω]× + b [ω]×², with Taylor series for small |ω|."""
-    th2 = w0 * w0 + w1 * w1 + w2 * w2
-    if th2 < 1e-10:
-        s_, c_ = 1.0 - th2 / 6.0, 0.5 - th2 / 24.0  # sin θ/θ, (1 - cos θ)/θ²
-        b = 1.0 / 6.0 - th2 / 120.0  # (θ - sin θ)/θ³
-    else:
-        th = np.sqrt(th2)
-        s_, c_ = np.sin(th) / th, (1.0 - np.cos(th)) / th2
-        b = (th - np.sin(th)) / (th2 * th)
-    # [ω]× and [ω]×² = ω ωᵀ - θ² I
-    K = ((0.0, -w2, w1), (w2, 0.0, -w0), (-w1, w0, 0.0))
-    w = (w0, w1, w2)
-    v = (v0, v1, v2)
-    for i in range(3):
-        for j in range(3):
-            K2 = w[i] * w[j] - (th2 if i == j else 0.0)
-            T[i, j] = (1.0 if i == j else 0.0) + s_ * K[i][j] + c_ * K2
-        ti = 0.0
-        for j in range(3):
-            K2 = w[i] * w[j] - (th2 if i == j else 0.0)
-            ti += ((1.0 if i == j else 0.0) + c_ * K[i][j] + b * K2) * v[j]
-        T[i, 3] = ti
-
-
-@njit(cache=True)
-def _log_into(T, out):
-    """out[:6] = Log(T) of GTSAM's Pose3: ω from the unit quaternion of R (well defined up
-    to θ = π), v = J_l(ω)⁻¹ t, J_l⁻¹ = I - ½[ω]× + c [ω]×²."""
-    # quaternion (x, y, z, w) of R by the largest-pivot method
-    tr = T[0, 0] + T[1, 1] + T[2, 2]
-    if tr > 0.0:
-        s = 2.0 * np.sqrt(tr + 1.0)
-        qw, qx, qy, qz = 0.25 * s, (T[2, 1] - T[1, 2]) / s, (T[0, 2] - T[2, 0]) / s, (T[1, 0] - T[0, 1]) / s
-    elif T[0, 0] > T[1, 1] and T[0, 0] > T[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + T[0, 0] - T[1, 1] - T[2, 2])
-        qw, qx, qy, qz = (T[2, 1] - T[1, 2]) / s, 0.25 * s, (T[0, 1] + T[1, 0]) / s, (T[0, 2] + T[2, 0]) / s
-    elif T[1, 1] > T[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + T[1, 1] - T[0, 0] - T[2, 2])
-        qw, qx, qy, qz = (T[0, 2] - T[2, 0]) / s, (T[0, 1] + T[1, 0]) / s, 0.25 * s, (T[1, 2] + T[2, 1]) / s
-    else:
-        s = 2.0 * np.sqrt(1.0 + T[2, 2] - T[0, 0] - T[1, 1])
-        qw, qx, qy, qz = (T[1, 0] - T[0, 1]) / s, (T[0, 2] + T[2, 0]) / s, (T[1, 2] + T[2, 1]) / s, 0.25 * s
-    if qw < 0.0:
-        qw, qx, qy, qz = -qw, -qx, -qy, -qz
-    nv = np.sqrt(qx * qx + qy * qy + qz * qz)
-    # θ = 2 atan2(|q_v|, q_w); ω = θ q_v / |q_v|
-    f = 2.0 * np.arctan2(nv, qw) / nv if nv > 1e-12 else 2.0 / qw
-    w0, w1, w2 = f * qx, f * qy, f * qz
-    th2 = w0 * w0 + w1 * w1 + w2 * w2
-    if th2 < 1e-10:
-        c = 1.0 / 12.0 + th2 / 720.0
-    else:
-        th = np.sqrt(th2)
-        c = 1.0 / th2 - (1.0 + np.cos(th)) / (2.0 * th * np.sin(th))
-    K = ((0.0, -w2, w1), (w2, 0.0, -w0), (-w1, w0, 0.0))
-    w = (w0, w1, w2)
-    out[0], out[1], out[2] = w0, w1, w2
-    for i in range(3):
-        vi = 0.0
-        for j in range(3):
-            K2 = w[i] * w[j] - (th2 if i == j else 0.0)
-            vi += ((1.0 if i == j else 0.0) - 0.5 * K[i][j] + c * K2) * T[j, 3]
-        out[3 + i] = vi
-
-
-@njit(cache=True)
-def _exp_batch(xi, out):
-    for n in range(xi.shape[0]):
-        _exp_into(xi[n, 0], xi[n, 1], xi[n, 2], xi[n, 3], xi[n, 4], xi[n, 5], out[n])
-        out[n, 3, 0], out[n, 3, 1], out[n, 3, 2], out[n, 3, 3] = 0.0, 0.0, 0.0, 1.0
-
-
-@njit(cache=True)
-def _log_batch(T, out):
-    for n in range(T.shape[0]):
-        _log_into(T[n], out[n])
-
-
-def se3_exp(xi):
-    """GTSAM's Pose3.Expmap, batched. xi : (N, 6) float, (ω, v)  ->  (N, 4, 4)"""
-    xi = np.ascontiguousarray(xi, dtype=np.float64)
-    if xi.ndim != 2 or xi.shape[1] != 6:
-        raise ContactPoseError(f"xi must have shape (N, 6), got {xi.shape}")
-    out = np.empty((len(xi), 4, 4))
-    _exp_batch(xi, out)
-    return out
-
-
-def se3_log(T):
-    """GTSAM's Pose3.Logmap, batched. T : (N, 4, 4) rigid  ->  (N, 6) (ω, v), |ω| ≤ π"""
-    T = np.ascontiguousarray(T, dtype=np.float64)
-    if T.ndim != 3 or T.shape[1:] != (4, 4):
-        raise ContactPoseError(f"T must have shape (N, 4, 4), got {T.shape}")
-    out = np.empty((len(T), 6))
-    _log_batch(T, out)
-    return out
-
-
 # ----------------------------------------------------------- log-posterior ---
 
 class PosePosterior:
@@ -219,12 +116,12 @@ class PosePosterior:
 
     def poses(self, xi):
         """T* · Exp(ξ). xi : (W, 6) -> (W, 4, 4)"""
-        return self.T_opt @ se3_exp(xi)
+        return self.T_opt @ se3.exp(xi)
 
     def tangent(self, T):
         """ξ = Log(T*⁻¹ T), the chart coordinates of poses. T : (W, 4, 4) or (4, 4) -> (W, 6)"""
         T = np.asanyarray(T, dtype=np.float64).reshape(-1, 4, 4)
-        return se3_log(np.linalg.inv(self.T_opt) @ T)
+        return se3.log(np.linalg.inv(self.T_opt) @ T)
 
     def log_likelihood(self, xi):
         """-Σ_i ρ(s_i) of the contacts at T* · Exp(ξ) (-inf outside the chart). xi : (W, 6) -> (W,)"""
@@ -259,7 +156,7 @@ class PosePosterior:
             return np.where(_in_chart(xi), 0.0, -np.inf)
         out = np.full(len(xi), -np.inf)
         inside = _in_chart(xi)
-        d = se3_log(self._prior_inv_pose @ self.poses(xi[inside]))
+        d = se3.log(self._prior_inv_pose @ self.poses(xi[inside]))
         out[inside] = -0.5 * np.einsum("wi,ij,wj->w", d, self._prior_info, d)
         return out
 

@@ -10,12 +10,13 @@ from scipy.spatial.transform import Rotation
 
 from contactpose import Contacts, ObjectModel
 from contactpose.contacts import Tolerance
+from contactpose.geometry.se3 import retract
 from contactpose.model import surface
 from contactpose.model.object_model import merged_mesh
 from contactpose.scoring.rank import hypothesis_arrays
 from contactpose.sim import fingertip, objects
 from contactpose.solvers.closed_form import fit_poses
-from contactpose.solvers.surface import _Problem, landing, moved, surface_fit
+from contactpose.solvers.surface import _Problem, landing, surface_fit
 
 
 def _unit(v):
@@ -210,7 +211,7 @@ def test_surface_jacobian_matches_finite_differences(name):
         pose, noisy, got = _noisy_edge_grasp(model, rng, tol)
         problem = _Problem(model, noisy, pose[:3, :3], pose[:3, 3], got.facets, tol, 1.0)
         xi = rng.normal(scale=1e-3, size=6) * np.r_[1, 1, 1, [model.diameter] * 3]
-        R, t = moved(pose[None, :3, :3], pose[None, :3, 3], xi[None])
+        R, t = retract(pose[None, :3, :3], pose[None, :3, 3], xi[None])
         at = landing(model, noisy, R[0], t[0], got.facets, tol)
         J = problem.jacobian(xi)
         h = 1e-7 * np.r_[1, 1, 1, [model.diameter] * 3]

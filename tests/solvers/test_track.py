@@ -391,8 +391,8 @@ def test_association_covariance_adds_where_lm_puts_the_reassociated_optimum(cont
     last pose's move to the optimum of the graph whose associated touches take their facets
     under the drawn poses. Against the same draw re-associated here and solved by LM to
     convergence from the track's converged estimate, to 1e-3 of δ δᵀ."""
+    from contactpose.geometry.se3 import inverse as rigid_inverse
     from contactpose.tracking import track as trackmod
-    from contactpose.tracking.track import rigid_inverse
 
     banana = ObjectModel.from_mesh(objects.load("ycb:011_banana"))
     tol = _tolerance(banana)

@@ -12,6 +12,7 @@ import pytest
 
 from contactpose.contacts import Contacts, Tolerance
 from contactpose.errors import ContactPoseError
+from contactpose.geometry import se3
 from contactpose.localize import localize
 from contactpose.options import ROBUST
 from contactpose.scoring.rank import closed_form_arrays
@@ -36,22 +37,6 @@ def _grasp(model, seed, n=4, where="area"):
 def _refined(model, g, tol, **kw):
     arrays = closed_form_arrays(model, g.contacts, g.facets[None], tol)
     return fg.refine_hypotheses(model, g.contacts, arrays, tol, k=1, **kw)
-
-
-# ------------------------------------------------------------------ SE(3) ---
-
-def test_se3_exp_log_match_gtsam():
-    rng = np.random.default_rng(0)
-    xi = rng.normal(size=(40, 6)) * np.r_[[0.8] * 3, [0.3] * 3]
-    xi[:5] *= 1e-7  # the small-angle series
-    xi[5, :3] = [np.pi - 1e-3, 0.0, 0.0]  # near π
-    T = unc.se3_exp(xi)
-    for x, Ti in zip(xi, T):
-        np.testing.assert_allclose(Ti, gtsam.Pose3.Expmap(x).matrix(), atol=1e-12)
-        np.testing.assert_allclose(unc.se3_log(Ti[None])[0], gtsam.Pose3.Logmap(gtsam.Pose3(Ti)), atol=1e-9)
-    np.testing.assert_allclose(unc.se3_log(T), xi, atol=1e-9)
-    with pytest.raises(ContactPoseError, match=r"\(N, 6\)"):
-        unc.se3_exp(np.zeros((3, 5)))
 
 
 # ---------------------------------------------------------- log-posterior ---
@@ -164,7 +149,7 @@ def test_pose_posterior_matches_laplace_where_linear(banana_model):
     np.testing.assert_allclose(np.diag(s.covariance) / np.diag(lap), 1.0, atol=0.2)
     assert np.all(np.abs(s.mean) < 4 * np.sqrt(np.diag(lap) * s.tau.max() / (s.steps * s.n_walkers)))
     assert s.poses.shape == (3000, 4, 4) and s.xi.shape == (3000, 6)
-    np.testing.assert_allclose(s.poses, ref.poses[0] @ unc.se3_exp(s.xi))
+    np.testing.assert_allclose(s.poses, ref.poses[0] @ se3.exp(s.xi))
     # 95 % intervals about ±1.96 σ of the Laplace marginals; rotation rows in degrees
     half = np.diff(s.intervals[0.95], axis=1)[:, 0] / 2
     sd = np.sqrt(np.diag(lap))
@@ -195,7 +180,7 @@ def test_short_chain_warns():
 def test_hpd_and_mahalanobis_helpers():
     mean, cov, log_prob = _gaussian()
     run = unc.run_ensemble(log_prob, cov, 2000, np.random.default_rng(3), progress=False)
-    s = unc.PoseSamples(**vars(run), poses=unc.se3_exp(run.xi), T_opt=np.eye(4), facets=np.zeros(4, int),
+    s = unc.PoseSamples(**vars(run), poses=se3.exp(run.xi), T_opt=np.eye(4), facets=np.zeros(4, int),
                         mean=run.xi.mean(0), covariance=np.cov(run.xi, rowvar=False), intervals={})
     # a point at the mode has credibility ~0, one far out ~1; HPD and Mahalanobis agree for a Gaussian
     cred = s.hpd_credibility(log_prob(np.stack([mean, mean + 10 * np.sqrt(np.diag(cov))])))
