@@ -22,6 +22,7 @@ from itertools import combinations
 import numpy as np
 
 from contactpose.contacts import Contacts, Tolerance
+from contactpose.costs.association import fitting_members, nearest_fit_facets
 from contactpose.errors import ContactPoseError, ContactsError, ResourceError, check_count
 from contactpose.options import (
     DEFAULT_POSITION_NOISE_FRAC,
@@ -51,7 +52,6 @@ from contactpose.search.tree import (
     sorted_rows,
 )
 from contactpose.solvers import factor_graph as fg
-from contactpose.solvers import residuals as res
 from contactpose.solvers.closed_form import fit_poses
 from contactpose.solvers.lm import fit_lm_all
 from contactpose.types import HypothesisList, PosePrior, Result
@@ -390,7 +390,7 @@ def refine_hypotheses(model, contacts, arrays, tolerance, *, prior=None, robust=
     arrays = arrays.take(np.sort(np.unique(arrays.facets, axis=0, return_index=True)[1]))  # found twice
     how = f"searched again with {fg.RESCUE_WIDEN:g}x the pair tolerances"
     if not fg.agrees_with_prior(model, arrays, tolerance, prior):
-        facets = fg.nearest_fit_facets(model, contacts, prior.pose, tolerance)
+        facets = nearest_fit_facets(model, contacts, prior.pose, tolerance)
         arrays = arrays.merged(ranking.closed_form_arrays(model, contacts, facets[None], tolerance,
                                                           angle_tol=tolerance.angle))
         how += " and added each contact's best-fitting facet under the prior pose"
@@ -440,7 +440,7 @@ def _members_in_chunks(model, contacts, tuples, tolerance, prior, members_deadli
 
 def _member_facets(model, contacts, tuples, tolerance, prior):
     """Pose patch tuples (H, n) on the patch planes, give each contact the member facet that
-    fits it best (nearest, with the normal it carries: solvers.residuals.fitting_members), re-pose
+    fits it best (nearest, with the normal it carries: costs.association.fitting_members), re-pose
     on those facets and take the members again (research/design.md). -> (H, n) int facets"""
     patches = model.patches
     t0 = None if prior is None else np.broadcast_to(prior.pose[:3, 3], (len(tuples), 3))
@@ -448,7 +448,7 @@ def _member_facets(model, contacts, tuples, tolerance, prior):
     for _ in range(2):
         fit = fit_poses(normals, offsets, contacts.points, contacts.finger_normals,
                         angle_tol=tolerance.normal_noise, t0=t0, centroids=centres)
-        facets = res.fitting_members(model, contacts, tuples, fit.R, fit.t, tolerance)
+        facets = fitting_members(model, contacts, tuples, fit.R, fit.t, tolerance)
         normals, offsets, centres = model.planes.normals[facets], model.planes.offsets[facets], model.centroids[facets]
     return facets
 

@@ -63,6 +63,8 @@ from typing import NamedTuple
 import numpy as np
 
 from contactpose.contacts import Tolerance
+from contactpose.costs.facet import normal_residuals, offset_residuals, whitened_cost
+from contactpose.costs.frame import object_frame as to_object_frame
 from contactpose.geometry.metrics import SAME_CLASS_ADDS_FRAC, adds, pose_success
 from contactpose.localize import localize
 from contactpose.model.object_model import ObjectModel
@@ -77,7 +79,6 @@ from contactpose.sim import grasps as simulate
 from contactpose.sim import objects
 from contactpose.sim.touch import simulate_touch, with_contact
 from contactpose.solvers.closed_form import fit_poses
-from contactpose.solvers.residuals import normal_residuals, offset_residuals, to_object_frame, whitened_cost
 from contactpose.tracking import next_touch as touchmod
 
 log = logging.getLogger("discrimination")

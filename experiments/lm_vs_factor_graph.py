@@ -42,6 +42,10 @@ import gtsam
 import numpy as np
 
 from contactpose.contacts import Contacts, Tolerance
+from contactpose.costs import association, facet
+from contactpose.costs import robust as kernels
+from contactpose.costs.facet import normal_residuals
+from contactpose.costs.paper import paper_cost, paper_offset_residuals
 from contactpose.geometry.metrics import SAME_CLASS_ADDS_FRAC, adds, pose_success, rotation_error_deg, translation_error
 from contactpose.localize import localize
 from contactpose.model.object_model import ObjectModel
@@ -53,7 +57,6 @@ from contactpose.sim import grasps as simulate
 from contactpose.sim import objects
 from contactpose.solvers import factor_graph as fg
 from contactpose.solvers.lm import fit_lm_all
-from contactpose.solvers.residuals import normal_residuals, paper_cost, paper_offset_residuals
 from contactpose.types import PosePrior
 
 log = logging.getLogger("lm_vs_factor_graph")
@@ -259,7 +262,7 @@ def completed(model, contacts, arrays, tol):
     under the hypothesis's closed-form pose, for methods that assign every finger. -> (H, n)"""
     facets = arrays.facets.copy()
     for h in np.flatnonzero((facets < 0).any(axis=1)):
-        facets[h] = np.where(facets[h] < 0, fg.nearest_fit_facets(model, contacts, arrays.poses[h], tol), facets[h])
+        facets[h] = np.where(facets[h] < 0, association.nearest_fit_facets(model, contacts, arrays.poses[h], tol), facets[h])
     return facets
 
 
@@ -391,11 +394,11 @@ def speed(models, n_refinements, n_trials, rng, repeats=3):
         contacts = Contacts(p @ R.T + t, object_normals=simulate.perturb_normals(
             model.planes.normals[g.facets] @ R.T, np.radians(2.0), rng))
         pose = gtsam.Pose3(g.pose).retract(np.concatenate([rng.normal(0, 0.002, 3), rng.normal(0, 2e-4, 3)]))
-        data = fg.pack_contacts(model, contacts, g.facets)
-        pk = fg.kernel_params(tol, robust)
-        _, J = fg.contact_residuals(pose.matrix(), data, pk)
+        data = facet.pack_contacts(model, contacts, g.facets)
+        pk = facet.kernel_params(tol, robust)
+        _, J = facet.factor_rows(pose.matrix(), data, pk)
         J_num = numericalDerivative11(
-            lambda P: fg.contact_residuals(P.matrix(), data, pk, jacobian=False)[0], pose, 1e-6)
+            lambda P: facet.factor_rows(P.matrix(), data, pk, jacobian=False)[0], pose, 1e-6)
         worst = max(worst, float(np.abs(J - J_num).max() / np.abs(J).max()))
     out["jacobian_max_rel_error"] = worst
     out["jacobian_trials"] = n_trials
@@ -581,7 +584,7 @@ def main(argv=None):
                   default_contact=DEFAULT_CONTACT, prior_noise=PRIOR_NOISE, default_prior=DEFAULT_PRIOR,
                   lm_candidates=LM_CANDIDATES, outlier_frac=OUTLIER_FRAC, outlier_penalty=OUTLIER_PENALTY,
                   rescue_widen=fg.RESCUE_WIDEN, acceptance_objects=ACCEPTANCE_OBJECTS,
-                  fg_k=DEFAULT_REFINE, huber_k=fg.HUBER_K, cauchy_k=fg.CAUCHY_K,
+                  fg_k=DEFAULT_REFINE, huber_k=kernels.HUBER_K, cauchy_k=kernels.CAUCHY_K,
                   ambiguous_probability=AMBIGUOUS_PROBABILITY, success_adds_frac=SAME_CLASS_ADDS_FRAC,
                   **sizes)
     _write_config(os.path.join(args.out, "config.json"), config, args.parts)

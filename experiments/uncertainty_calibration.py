@@ -51,6 +51,8 @@ import numpy as np
 from scipy.stats import chi2
 
 from contactpose.contacts import Tolerance
+from contactpose.costs import facet
+from contactpose.costs import robust as kernels
 from contactpose.model.object_model import ObjectModel
 from contactpose.scoring.rank import closed_form_arrays
 from contactpose.sim import grasps as simulate
@@ -105,8 +107,8 @@ def run_grasp(model, g, tol, robust, n_samples, rng):
     xi = post.tangent(g.pose)
     # contacts outside their triangle at T* (r_l > 0): there the Laplace Hessian holds the
     # lateral term's curvature, though the posterior is flat on the triangle's side
-    e, _ = fg.contact_residuals(T, post.data, fg.kernel_params(tol, "none"), jacobian=False)
-    n_outside = int(np.sum(fg.lateral_norms(e, g.contacts.n) > 0))
+    e, _ = facet.factor_rows(T, post.data, facet.kernel_params(tol, "none"), jacobian=False)
+    n_outside = int(np.sum(facet.lateral_norms(e, g.contacts.n) > 0))
     d2 = float(xi[0] @ np.linalg.solve(cov, xi[0]))
     # how the sample spread differs from Laplace: per-axis sd ratio, and the volume ratio
     sd_ratio = np.sqrt(np.diag(s.covariance) / np.diag(cov))
@@ -243,7 +245,7 @@ def main(argv=None):
                      burn_tau=unc.BURN_TAU, thin_tau=unc.THIN_TAU, pilot_steps=unc.PILOT_STEPS,
                      first_steps=unc.FIRST_STEPS, max_steps=unc.MAX_STEPS,
                      independence_fraction=unc.INDEPENDENCE_FRACTION, independence_scale=unc.INDEPENDENCE_SCALE),
-        huber_k=fg.HUBER_K, cpus=os.cpu_count(), load_average_at_start=list(os.getloadavg()), **sizes)
+        huber_k=kernels.HUBER_K, cpus=os.cpu_count(), load_average_at_start=list(os.getloadavg()), **sizes)
     with open(os.path.join(args.out, "config.json"), "w") as fh:
         json.dump(config, fh, indent=1)
     # load the numba kernels outside the timings

@@ -14,6 +14,7 @@ from conftest import NORMAL_NOISE_DEG, POSITION_NOISE
 from scipy.spatial.transform import Rotation
 
 from contactpose.contacts import Contacts, Tolerance
+from contactpose.costs import facet, frame
 from contactpose.errors import ContactPoseError, ContactsError, PriorError
 from contactpose.geometry.metrics import (
     SAME_CLASS_ADDS_FRAC,
@@ -29,7 +30,6 @@ from contactpose.scoring.classes import MAX_CLASS_HYPOTHESES, pose_classes
 from contactpose.search.pairs import admissible_pairs, pair_conditions
 from contactpose.search.tree import TripleTest, join_tuples, sorted_rows
 from contactpose.sim import grasps as simulate
-from contactpose.solvers import residuals as res
 from contactpose.solvers.closed_form import fit_poses, wahba
 from contactpose.solvers.lm import eq7_residuals, fit_lm
 from contactpose.types import PosePrior
@@ -239,12 +239,12 @@ def test_fused_residuals_equal_the_per_term_definitions(rock_model):
     t = rng.normal(scale=0.02, size=(50, 3))
     points, fn = rng.normal(scale=0.03, size=(4, 3)), Rotation.random(4, random_state=3).apply([0, 0, 1.0])
     normals, offsets, tri = model.planes.normals[facets], model.planes.offsets[facets], model.triangles[facets]
-    r_n, r_o, r_l = res.contact_residuals(R, t, normals, offsets, tri, points, fn)
-    p = res.to_object_frame(R, t, points)
-    want_o = res.offset_residuals(p, normals, offsets)
-    assert np.allclose(r_n, res.normal_residuals(R, normals, fn), atol=1e-14)
+    r_n, r_o, r_l = facet.contact_residuals(R, t, normals, offsets, tri, points, fn)
+    p = frame.object_frame(R, t, points)
+    want_o = facet.offset_residuals(p, normals, offsets)
+    assert np.allclose(r_n, facet.normal_residuals(R, normals, fn), atol=1e-14)
     assert np.allclose(r_o, want_o, atol=1e-14)
-    assert np.allclose(r_l, res.lateral_residuals(p, tri, want_o), atol=1e-9)
+    assert np.allclose(r_l, facet.lateral_residuals(p, tri, want_o), atol=1e-9)
     assert (r_l > 0).any() and (r_l == 0).any()
 
 

@@ -11,12 +11,13 @@ from conftest import NORMAL_NOISE_DEG, POSITION_NOISE
 
 from contactpose.cli import next_touch
 from contactpose.contacts import Contacts
+from contactpose.costs.facet import lateral_residuals, offset_residuals
+from contactpose.costs.frame import object_frame as to_object_frame
 from contactpose.errors import ContactPoseError
 from contactpose.localize import localize
 from contactpose.peers.random_touch import random_touch
 from contactpose.sim import grasps as simulate
 from contactpose.sim.touch import simulate_touch, with_contact
-from contactpose.solvers.residuals import lateral_residuals, offset_residuals, to_object_frame
 from contactpose.tracking import next_touch as T
 
 NOISE = dict(position_noise=POSITION_NOISE, normal_noise_deg=NORMAL_NOISE_DEG)

@@ -217,25 +217,6 @@ def point_triangle_dist2(p, a, b, c):
 
 
 @njit(cache=True)
-def normal_misfit(facet_normal, normal, weight):
-    """weight · |n_f - n|²: the normal part of a contact's fit to a facet (normal n outward, in
-    the facet's frame), in units of σ_x² when weight = σ_x²/σ_n²."""
-    d = 0.0
-    for a in range(3):
-        d += (facet_normal[a] - normal[a]) ** 2
-    return weight * d
-
-
-@njit(cache=True)
-def fit_cost(point, normal, triangle, facet_normal, weight):
-    """A contact's whitened fit to a facet, times σ_x²: its squared distance to the triangle
-    (3, 3) plus :func:`normal_misfit` (weight = σ_x²/σ_n²). The rule by which a contact takes
-    its facet (factor_graph.nearest_fit_facets, model.patches.nearest_members)."""
-    return (_point_triangle_d2(_t(point), _t(triangle[0]), _t(triangle[1]), _t(triangle[2]))
-            + normal_misfit(facet_normal, normal, weight))
-
-
-@njit(cache=True)
 def segment_d2(x, p, q):
     """Squared distance from the point x to the closed segment pq, each (3,)."""
     return _point_segment_d2(_t(x), _t(p), _t(q))

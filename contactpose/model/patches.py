@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from contactpose.geometry.kernels import _d2, _t, _triangle_triangle_d2, normal_misfit, point_triangle_dist2
+from contactpose.geometry.kernels import _t, _triangle_triangle_d2
 from contactpose.io.modelfile import STORED_PATCHES, check_arrays, check_pointers
 from contactpose.model.features import NearPairs, PairFeatures, round_down32, round_up32
 from contactpose.progress import progress_bar
@@ -241,71 +241,6 @@ class MemberGroups:
         centre, radius = _spheres(triangles[members].reshape(-1, 3), 3 * grp_mem)
         spread = np.maximum.reduceat(facet_radii[members], grp_mem[:-1]) if len(members) else np.zeros(0)
         return cls(indptr, members, grp_ptr, grp_mem, centre, radius, spread)
-
-
-def nearest_members(groups, triangles, tuples, p_obj, normals=None, spheres=None):
-    """The member facet of each hypothesised region nearest to its contact.
-
-    groups : MemberGroups of the regions; tuples : (Hp, n) region indices; p_obj : (Hp, n, 3)
-    contacts in the object frame under each tuple's pose; triangles : (m, 3, 3); normals :
-    None (nearest by distance), or (facet_normals (m, 3), contact normals (Hp, n, 3) outward
-    in the object frame, σ_x²/σ_n²): the member with the least d²/σ_x² + |n_f - n|²/σ_n², the
-    whitened χ² of that contact, so that on a curved region a contact takes the member whose
-    normal it carries, not only the closest one. Runs whose sphere rules them out are
-    skipped; spheres : (centres (m, 3), radii (m,)) holding each facet: members whose sphere
-    rules them out skip the exact distance too (same answer).  ->  (Hp, n) int64 facet indices
-    """
-    if normals is None:
-        facet_normals, obj_normals, weight = np.zeros((1, 3)), np.zeros((1, 1, 3)), 0.0
-    else:
-        facet_normals, obj_normals, weight = normals
-    centres, radii = (np.zeros((1, 3)), np.full(1, -1.0)) if spheres is None else spheres
-    return _nearest(groups.grp_ptr, groups.grp_mem, groups.members, groups.centre, groups.radius, triangles, tuples,
-                    p_obj, np.ascontiguousarray(facet_normals, dtype=np.float64),
-                    np.ascontiguousarray(obj_normals, dtype=np.float64), float(weight),
-                    np.ascontiguousarray(centres, dtype=np.float64), np.ascontiguousarray(radii, dtype=np.float64))
-
-
-@numba.njit(cache=True)
-def _nearest(grp_ptr, grp_mem, members, grp_centre, grp_radius, triangles, tuples, p_obj, facet_normals,
-             obj_normals, weight, centres, radii):
-    """Least whitened cost over each region's members; a run's sphere bounds the distance of
-    all its members from below (the normal term is >= 0), so a run it rules out is skipped.
-    The run nearest the contact goes first, so that the others meet a low bound."""
-    hp, n = tuples.shape
-    out = np.empty((hp, n), dtype=np.int64)
-    prune = radii[0] >= 0.0
-    for h in range(hp):
-        for i in range(n):
-            q = tuples[h, i]
-            x = _t(p_obj[h, i])
-            best = np.inf
-            lo, hi = grp_ptr[q], grp_ptr[q + 1]
-            first = lo
-            if hi - lo > 1:
-                nearest = np.inf
-                for g in range(lo, hi):
-                    gap = np.sqrt(_d2(x, _t(grp_centre[g]))) - grp_radius[g]
-                    if gap < nearest:
-                        nearest, first = gap, g
-            for j in range(hi - lo):
-                g = lo + (first - lo + j) % (hi - lo)
-                if j > 0:
-                    gap = np.sqrt(_d2(x, _t(grp_centre[g]))) - grp_radius[g]
-                    if gap > 0.0 and gap * gap >= best:
-                        continue
-                for e in range(grp_mem[g], grp_mem[g + 1]):
-                    f = members[e]
-                    d = normal_misfit(facet_normals[f], obj_normals[h, i], weight) if weight > 0.0 else 0.0
-                    if prune:
-                        gap = np.sqrt(_d2(x, _t(centres[f]))) - radii[f]
-                        if gap > 0.0 and d + gap * gap >= best:
-                            continue
-                    d += point_triangle_dist2(p_obj[h, i], triangles[f, 0], triangles[f, 1], triangles[f, 2])
-                    if d < best:
-                        best = d
-                        out[h, i] = f
-    return out
 
 
 # ------------------------------------------------- patch-first pair features ---

@@ -11,7 +11,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from contactpose.geometry.kernels import point_triangle_distance, triangle_pair_bounds
+from contactpose.costs.facet import angle_chi2
+from contactpose.costs.frame import object_frame
+from contactpose.geometry.kernels import triangle_pair_bounds
 from contactpose.geometry.raycast import raycaster
 from contactpose.geometry.sampling import barycentric_uniform, points_in_triangles
 
@@ -114,18 +116,12 @@ def contact_cost(model, surface, contacts, poses, position_noise, normal_noise_d
     within NEIGHBOUR_RADIUS of it.
     """
     poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
-    R, t = poses[:, :3, :3], poses[:, :3, 3]
-    # object-frame contact points and outward normals: Rᵀ(x - t), Rᵀ n  -> (P, n, 3)
-    p = np.einsum("pji,pnj->pni", R, contacts.points[None] - t[:, None])
-    nrm = np.einsum("pji,nj->pni", R, contacts.object_normals)
-    flat, nflat = p.reshape(-1, 3), nrm.reshape(-1, 3)
-    # candidates: the facet of the exact closest surface point and its neighbours  -> (Pn, D)
-    facets = surface.neighbours[surface.closest_facets(flat)]
-    D = facets.shape[1]
-    d = point_triangle_distance(np.repeat(flat, D, axis=0), model.triangles[facets.ravel()]).reshape(-1, D)
-    cos = np.einsum("ij,ikj->ik", nflat, model.planes.normals[facets])
-    angle = np.arccos(np.clip(cos, -1.0, 1.0))
-    # each contact takes the candidate facet that explains it best (near an edge the
-    # nearest facet by distance may be the neighbour with the wrong normal)
-    chi2 = ((d / position_noise) ** 2 + (angle / np.radians(normal_noise_deg)) ** 2).min(axis=1)
+    p, nu = object_frame(poses[:, :3, :3], poses[:, :3, 3], contacts.points, contacts.finger_normals)
+    flat, nflat = p.reshape(-1, 3), nu.reshape(-1, 3)
+    # candidates: the facet of the exact closest surface point and its neighbours  -> (Pn, D); each
+    # contact takes the one that explains it best (near an edge the nearest facet by distance may
+    # be the neighbour with the wrong normal)
+    candidates = surface.neighbours[surface.closest_facets(flat)]
+    chi2 = angle_chi2(flat, nflat, candidates, model.triangles, model.planes.normals, position_noise,
+                      np.radians(normal_noise_deg))
     return chi2.reshape(len(poses), -1).sum(axis=1)

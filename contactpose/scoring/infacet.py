@@ -34,15 +34,13 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from contactpose.costs.facet import in_plane, normal_gradient, normal_residual, plane_residual
 from contactpose.geometry.kernels import (  # 3-tuple kernels
     _add,
-    _axpy,
     _closest_on_triangle,
     _cross,
     _d2,
     _dot,
-    _r_apply,
-    _rt_apply,
     _sub,
     _t,
 )
@@ -172,14 +170,12 @@ def _bound_kernel(R, t, normals, offsets, points, finger_normals, wn, wx, region
         A[:], H[:], g[:], g_n[:] = 0.0, 0.0, 0.0, 0.0
         chi2_0 = 0.0
         for i in range(n):
-            pi = _rt_apply(R[k], _sub(_t(points[i]), _t(t[k])))
+            pi, r_n, r_o = plane_residual(R[k], t[k], normals[k, i], offsets[k, i], points[i], finger_normals[i])
             p[i, 0], p[i, 1], p[i, 2] = pi
             nrm = _t(normals[k, i])
-            r_n = _add(_r_apply(R[k], nrm), _t(finger_normals[i]))
-            r_o = _dot(nrm, pi) + offsets[k, i]
             chi2_0 += wn[k, i] * _dot(r_n, r_n) + wx[k, i] * r_o * r_o
-            # normal term: J_nᵀJ_n = I - n nᵀ, J_nᵀ r_n = n × Rᵀ r_n
-            gn = _cross(nrm, _rt_apply(R[k], r_n))
+            # normal term: J_nᵀJ_n = I - n nᵀ, J_nᵀ r_n = n × Rᵀ r_n; offset term: j_o = (n × p, -n)
+            gn = normal_gradient(R[k], nrm, r_n)
             j_o = _cross(nrm, pi)
             pp = _dot(pi, pi)
             for a in range(3):
@@ -216,13 +212,13 @@ def _bound_kernel(R, t, normals, offsets, points, finger_normals, wn, wx, region
             q = _sub(_add(pi, _cross(pi, w)), v)
             d = _sub(q, _closest_of(q, i, cand, runs, triangles, centres, radii, last[i])[0])
             nrm = _t(normals[k, i])
-            u = _axpy(-_dot(d, nrm), nrm, d)                 # in-plane: |u| = r_l at q
+            u = in_plane(d, nrm)                             # |u| = r_l at q
             gu = _cross(u, pi)
             for a in range(3):
                 h[a] += wx[k, i] * gu[a]
                 h[a + 3] -= wx[k, i] * u[a]
             const += wx[k, i] * _dot(u, u)
-            r_n = _add(_r_apply(R[k], _add(nrm, _cross(w, nrm))), _t(finger_normals[i]))
+            r_n = normal_residual(R[k], _add(nrm, _cross(w, nrm)), finger_normals[i])  # at R (I + [ω]×)
             reached += wn[k, i] * _dot(r_n, r_n) + wx[k, i] * _dot(d, d)
         if determined[k] and np.linalg.cond(A) < SINGULAR_COND:  # the facets may leave a direction free
             gh = g + h

@@ -1,7 +1,7 @@
 """Ranking: the one constructor of ranked hypotheses, and the polish of their poses.
 
 Every ranked set of hypotheses (:class:`~contactpose.types.HypothesisArrays`) is built by
-:func:`hypothesis_arrays`: the residuals of :mod:`contactpose.solvers.residuals` at each
+:func:`hypothesis_arrays`: the residuals of the facet model (costs.facet; eq. (7) from costs.paper) at each
 pose, the whitened χ² (research/errata.md, "Further decisions"), and the ranking cost (χ² for
 the default method, eq. (7) ℒ for the paper's). Fingers left unassigned (facet -1,
 ``max_outliers``) have NaN residuals and add OUTLIER_PENALTY to χ² and cost.
@@ -11,9 +11,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from contactpose.costs import paper
+from contactpose.costs.association import fitting_members
+from contactpose.costs.facet import contact_residuals, normal_residuals, whitened_cost
 from contactpose.options import fit_threshold, outlier_penalty
 from contactpose.scoring.infacet import polished_poses
-from contactpose.solvers import residuals as res
 from contactpose.solvers.closed_form import fit_poses
 from contactpose.solvers.surface import needs_surface, surface_fit
 from contactpose.types import HypothesisArrays
@@ -42,18 +44,18 @@ def hypothesis_arrays(model, contacts, facets, fit, tolerance, *, method="fast",
     facets = np.asarray(facets, dtype=np.int64)
     ok, safe = facets >= 0, np.maximum(facets, 0)
     offsets = model.planes.offsets[safe]
-    r_n, r_o, r_l = res.contact_residuals(fit.R, fit.t, model.planes.normals[safe], offsets,
-                                          model.triangles[safe], contacts.points, contacts.finger_normals)
+    r_n, r_o, r_l = contact_residuals(fit.R, fit.t, model.planes.normals[safe], offsets,
+                                      model.triangles[safe], contacts.points, contacts.finger_normals)
     if surface is not None:
-        r_n = res.normal_residuals(fit.R, np.nan_to_num(surface[0]), contacts.finger_normals)
+        r_n = normal_residuals(fit.R, np.nan_to_num(surface[0]), contacts.finger_normals)
         r_l = np.sqrt(np.maximum(np.nan_to_num(surface[1]) ** 2 - r_o**2, 0.0))
     if not ok.all():
         r_n, r_o, r_l = r_n * ok[..., None], r_o * ok, r_l * ok
-    chi2 = res.whitened_cost(r_n, r_o, r_l, tolerance.normal_noise, tolerance.position_noise) + outlier_penalty(facets)
+    chi2 = whitened_cost(r_n, r_o, r_l, tolerance.normal_noise, tolerance.position_noise) + outlier_penalty(facets)
     offset_col = r_o
     if method == "paper":
-        offset_col = res.paper_offset_residuals(fit.t, contacts.points, contacts.finger_normals, offsets)
-        cost = res.paper_cost(r_n, offset_col) if paper_cost is None else paper_cost
+        offset_col = paper.paper_offset_residuals(fit.t, contacts.points, contacts.finger_normals, offsets)
+        cost = paper.paper_cost(r_n, offset_col) if paper_cost is None else paper_cost
     elif cost is None:
         cost = chi2
     residual = np.concatenate([r_n, offset_col[..., None], r_l[..., None]], axis=2)
@@ -114,7 +116,7 @@ def polish(model, contacts, arrays, tolerance):
     R, t = polished_poses(model, contacts, arrays, rows, tolerance, fit_threshold(contacts.n))
     facets = arrays.facets[rows]
     if model.patch_table is not None:
-        facets = res.fitting_members(model, contacts, np.ascontiguousarray(model.patches.labels[facets]), R, t, tolerance)
+        facets = fitting_members(model, contacts, np.ascontiguousarray(model.patches.labels[facets]), R, t, tolerance)
     fit = arrays.fit.take(rows)
     fit.R, fit.t = R, t
     moved = hypothesis_arrays(model, contacts, facets, fit, tolerance, order=False)

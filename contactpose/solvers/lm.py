@@ -1,9 +1,7 @@
-"""The paper's pose fit: Levenberg–Marquardt on eq. (7), corrected (erratum 3).
-
-ℒ(θ, t) = Σ_i |R(θ)ᵀ ñ_i + n_k|² + (ñ_iᵀ t + d̃_i + d_k)²,  d̃_i = -ñ_iᵀ x̃_i,
-
-minimised per hypothesis with ``scipy.optimize.least_squares(method="lm")``
-from a start pose (the vision prior, or the identity), as in §4.
+"""The paper's pose fit: Levenberg–Marquardt on eq. (7), corrected (erratum 3; the cost and
+its residual vector in costs.paper), minimised per hypothesis with
+``scipy.optimize.least_squares(method="lm")`` from a start pose (the vision prior, or the
+identity), as in §4.
 """
 
 from __future__ import annotations
@@ -12,15 +10,8 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
+from contactpose.costs.paper import eq7_residuals
 from contactpose.progress import progress_bar
-
-
-def eq7_residuals(x, obj_normals, obj_offsets, points, finger_normals):
-    """Residual vector of eq. (7) for x = (rotation vector, t). -> (4n,)"""
-    R = Rotation.from_rotvec(x[:3]).as_matrix()
-    normal = finger_normals @ R + obj_normals  # rows: Rᵀ ñ_i + n_k
-    offset = finger_normals @ x[3:] - np.einsum("ni,ni->n", finger_normals, points) + obj_offsets
-    return np.concatenate([normal.ravel(), offset])
 
 
 def fit_lm(obj_normals, obj_offsets, points, finger_normals, start):

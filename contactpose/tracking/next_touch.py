@@ -286,8 +286,8 @@ def _family(T0, free_t, axis, params, diameter, centre):
 
 def _on_patches(model, facets, poses, contacts, limit):
     """(P,) bool: every assigned contact within ``limit`` of its patch under each pose."""
+    from contactpose.costs.association import nearest_members
     from contactpose.geometry.kernels import point_triangle_distance
-    from contactpose.model.patches import nearest_members
 
     assigned = np.flatnonzero(np.asarray(facets) >= 0)
     f = np.asarray(facets)[assigned]

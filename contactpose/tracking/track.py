@@ -47,6 +47,9 @@ import numpy as np
 from scipy.stats import chi2
 
 from contactpose.contacts import Contacts, Tolerance
+from contactpose.costs.association import nearest_fit_facets
+from contactpose.costs.facet import kernel_params, pack_contacts
+from contactpose.costs.smooth import smooth_data, touch_chi2
 from contactpose.errors import ContactPoseError, check_count
 from contactpose.geometry.metrics import rotation_error_deg, translation_error
 from contactpose.geometry.se3 import inverse
@@ -238,8 +241,8 @@ class PoseTrack:
         if self.contact_model == "surface":
             return None
         if self.contact_model == "smooth":
-            return fg.smooth_data(self.model, local, facets, self.tolerance)
-        return fg.pack_contacts(self.model, local, facets), None
+            return smooth_data(self.model, local, facets, self.tolerance)
+        return pack_contacts(self.model, local, facets), None
 
     def _factors(self, local, facets, k, twin=False, packing=None):
         """The contact factors of a touch (contacts ``local`` in the hand frame) on pose k: one
@@ -374,7 +377,7 @@ class PoseTrack:
     def associate(self, contacts):
         """Each contact's best-fitting facet under the current smoothed pose (and its
         uncertainty, as a touch's association weighs it). -> (n,) int"""
-        return fg.nearest_fit_facets(self.model, contacts, self.pose, self.tolerance, self._uncertainty(),
+        return nearest_fit_facets(self.model, contacts, self.pose, self.tolerance, self._uncertainty(),
                                      creases=self.contact_model == "smooth")
 
     def _y(self, k):
@@ -448,7 +451,7 @@ class PoseTrack:
         uncertain = self.contact_model in UNCERTAIN_ASSOCIATION
         for (k, contacts, facets), associated in zip(self.touches, self._associated):
             if associated:
-                again = fg.nearest_fit_facets(self.model, contacts, poses[k], self.tolerance,
+                again = nearest_fit_facets(self.model, contacts, poses[k], self.tolerance,
                                               joint[6 * k:6 * k + 6, 6 * k:6 * k + 6] if uncertain else None,
                                               creases=self.contact_model == "smooth")
                 changed |= bool((again != facets).any())
@@ -601,7 +604,7 @@ class TrackSet:
         first = self.history[0][0]
         hand = self.tracks[0].hand[-1]
         starts = [inverse(hand) @ p for p in poses]  # Y: the pose in the first touch's world
-        facets = fg.nearest_fit_facets(self.model, first, np.stack(starts), self.tolerance, None,
+        facets = nearest_fit_facets(self.model, first, np.stack(starts), self.tolerance, None,
                                        creases=self.tracks[0].contact_model == "smooth")
         tracks = self._started(first, list(zip(facets, starts)))
         for contacts, motion in self.history[1:] if tracks else []:
@@ -670,7 +673,7 @@ def add_touch(tracks, contacts, motion):
            for t in tracks):
         raise ContactPoseError("tracks touched together must share one model, one tolerance, one contact model, "
                                "one point-to-facet setting and one robust kernel")
-    facets = fg.nearest_fit_facets(model, contacts, np.stack([t._predicted(motion) for t in tracks]), tolerance,
+    facets = nearest_fit_facets(model, contacts, np.stack([t._predicted(motion) for t in tracks]), tolerance,
                                    _stacked([t._uncertainty(motion) for t in tracks]), creases=kind[0] == "smooth")
     hands, local = [t._hand_after(motion) for t in tracks], {}
     for h in hands:  # the touch in each hand frame, once per distinct hand pose
@@ -683,7 +686,7 @@ def add_touch(tracks, contacts, motion):
     pending = list(tracks)
     tried = {id(t): {tuple(f)} for t, f in zip(tracks, facets)}
     for _ in range(REASSOCIATE):
-        again = fg.nearest_fit_facets(model, contacts, np.stack([t.pose for t in pending]), tolerance,
+        again = nearest_fit_facets(model, contacts, np.stack([t.pose for t in pending]), tolerance,
                                       _stacked([t._uncertainty() for t in pending]), creases=kind[0] == "smooth")
         changed = [(t, f) for t, f in zip(pending, again) if tuple(f) not in tried[id(t)]]
         packings = _packings([t for t, _ in changed], [t._local for t, _ in changed], [f for _, f in changed])
@@ -732,11 +735,11 @@ def _touch_chi2(tracks):
     first = tracks[0]
     if first.contact_model == "surface":
         return np.array([_surface_chi2(t) for t in tracks])
-    params = fg.kernel_params(first.tolerance, first.robust, first.point_to_facet)
+    params = kernel_params(first.tolerance, first.robust, first.point_to_facet)
     T = np.stack([t._last.matrix() for t in tracks])
     data = np.stack([t._packed[0] for t in tracks])
     smooth = None if first._packed[1] is None else np.stack([t._packed[1] for t in tracks])
-    return fg.touch_chi2(T, data, params, smooth)
+    return touch_chi2(T, data, params, smooth)
 
 
 def _surface_chi2(track):

@@ -9,8 +9,8 @@ space at its factor-graph optimum T*: ``ξ = (ω, v) ∈ R⁶`` (rotation first)
 
 with s_i the norm of contact i's whitened residual block and ρ the factor graph's kernel
 (``s²/2`` for "none", GTSAM's Huber or Cauchy loss), evaluated by the factor graph's own
-residual kernel (:func:`factor_graph.contact_residuals` returns the square-rooted robust
-residual ẽ with ``½|ẽ|² = Σ_i ρ(s_i)``), so ``log p(0) = -½ chi2`` of the refinement.
+residual rows (costs.facet.factor_rows returns the square-rooted robust residual ẽ with
+``½|ẽ|² = Σ_i ρ(s_i)``), so ``log p(0) = -½ chi2`` of the refinement.
 The prior term is GTSAM's ``PriorFactorPose3`` error. The prior on ξ is otherwise flat
 (Lebesgue in the chart; the Haar density differs from it by 1 + O(|ω|²)).
 
@@ -40,10 +40,11 @@ from dataclasses import KW_ONLY, dataclass
 import emcee
 import numpy as np
 
+from contactpose.costs import surface
+from contactpose.costs.facet import factor_rows, kernel_params, pack_contacts
 from contactpose.errors import ContactPoseError, check_count
 from contactpose.geometry import se3
 from contactpose.model.memory import check_fits
-from contactpose.model.surface import land
 from contactpose.schema import json_array, json_number
 from contactpose.scoring.rank import closed_form_arrays
 from contactpose.solvers import factor_graph as fg
@@ -104,8 +105,8 @@ class PosePosterior:
             raise ContactPoseError(f"facets must index the model's {model.num_facets} facets, got {facets.tolist()}")
         self.T_opt = _check_pose(T_opt, "T_opt")
         self.facets = facets
-        self.data = fg.pack_contacts(model, contacts, facets)
-        self.params = fg.kernel_params(tolerance, robust, point_to_facet)
+        self.data = pack_contacts(model, contacts, facets)
+        self.params = kernel_params(tolerance, robust, point_to_facet)
         self.robust = robust
         self.prior = prior
         # surface: the contact model of solvers.surface, each contact landing near its facet
@@ -129,24 +130,15 @@ class PosePosterior:
         out = np.full(len(xi), -np.inf)
         inside = _in_chart(xi)
         if self.surface is not None:
-            out[inside] = -self._surface_cost(self.poses(xi[inside]))
+            model, contacts, tolerance = self.surface
+            out[inside] = -surface.robust_cost(model, contacts, self.poses(xi[inside]), self.facets, tolerance,
+                                               self.robust)
             return out
         for w, T in zip(np.flatnonzero(inside), self.poses(xi[inside])):
             # the factor graph's own error: ½|ẽ|² = Σ_i ρ(s_i)
-            e, _ = fg.contact_residuals(T, self.data, self.params, jacobian=False)
+            e, _ = factor_rows(T, self.data, self.params, jacobian=False)
             out[w] = -0.5 * (e @ e)
         return out
-
-    def _surface_cost(self, T):
-        """Σ_i ρ(√c_i) of the surface contact model at poses T (W, 4, 4) -> (W,)"""
-        model, contacts, tolerance = self.surface
-        R, t = T[:, :3, :3], T[:, :3, 3]
-        p = np.einsum("wji,wnj->wni", R, contacts.points[None] - t[:, None])
-        nu = -np.einsum("wji,nj->wni", R, contacts.finger_normals)
-        start = np.tile(self.facets, len(T))
-        cost = land(model.topology, model.triangles, model.planes.normals, model.planes.valid, p.reshape(-1, 3),
-                    nu.reshape(-1, 3), start, tolerance.position_noise, tolerance.normal_noise).cost
-        return fg.robust_rho(np.sqrt(cost), self.params[5], self.params[2]).reshape(len(T), -1).sum(axis=1)
 
     def log_prior(self, xi):
         """-½ Mahalanobis² of Log(T_p⁻¹ T), GTSAM's PriorFactorPose3 error (0 without a prior).
@@ -446,7 +438,7 @@ def start_covariance(posterior, covariance, diameter):
     cov = None if covariance is None else np.asanyarray(covariance, dtype=np.float64)
     if cov is not None and cov.shape == (6, 6) and np.isfinite(cov).all() and np.linalg.eigvalsh(cov).min() > 0:
         return cov
-    e, J = fg.contact_residuals(posterior.T_opt, posterior.data, posterior.params)
+    e, J = factor_rows(posterior.T_opt, posterior.data, posterior.params)
     H = J.T @ J
     if posterior.prior is not None:
         H = H + posterior._prior_info  # Gauss-Newton of the prior at its centre

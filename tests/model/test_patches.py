@@ -7,11 +7,11 @@ import pytest
 import trimesh
 
 from contactpose.contacts import Contacts, Tolerance
+from contactpose.costs.association import fitting_members, nearest_members
 from contactpose.geometry.kernels import point_triangle_distance
 from contactpose.model.object_model import ObjectModel
-from contactpose.model.patches import GROUP_FACETS, nearest_members
+from contactpose.model.patches import GROUP_FACETS
 from contactpose.sim import objects
-from contactpose.solvers.residuals import fitting_members
 
 
 @pytest.fixture(scope="module")

@@ -10,21 +10,21 @@ import pytest
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
+from contactpose.costs import facet
 from contactpose.localize import localize
 from contactpose.options import fit_threshold
 from contactpose.scoring.infacet import lowest_chi2_bound, within_noise
 from contactpose.scoring.rank import closed_form_arrays
 from contactpose.sim import grasps as simulate
-from contactpose.solvers import residuals as res
 
 POSITION_NOISE, NORMAL_NOISE_DEG = 0.0005, 1.0
 
 
 def full_chi2(model, contacts, facets, T, tolerance):
-    r_n, r_o, r_l = res.contact_residuals(T[None, :3, :3], T[None, :3, 3], model.planes.normals[facets][None],
+    r_n, r_o, r_l = facet.contact_residuals(T[None, :3, :3], T[None, :3, 3], model.planes.normals[facets][None],
                                           model.planes.offsets[facets][None], model.triangles[facets][None],
                                           contacts.points, contacts.finger_normals)
-    return float(res.whitened_cost(r_n, r_o, r_l, tolerance.normal_noise, tolerance.position_noise)[0])
+    return float(facet.whitened_cost(r_n, r_o, r_l, tolerance.normal_noise, tolerance.position_noise)[0])
 
 
 def refined_chi2(model, contacts, facets, T0, tolerance):
@@ -33,7 +33,7 @@ def refined_chi2(model, contacts, facets, T0, tolerance):
         T = T0.copy()
         T[:3, :3] = T0[:3, :3] @ Rotation.from_rotvec(xi[:3]).as_matrix()
         T[:3, 3] = T0[:3, 3] + T0[:3, :3] @ xi[3:]
-        r_n, r_o, r_l = res.contact_residuals(T[None, :3, :3], T[None, :3, 3], model.planes.normals[facets][None],
+        r_n, r_o, r_l = facet.contact_residuals(T[None, :3, :3], T[None, :3, 3], model.planes.normals[facets][None],
                                               model.planes.offsets[facets][None], model.triangles[facets][None],
                                               contacts.points, contacts.finger_normals)
         return np.concatenate([r_n.ravel() / tolerance.normal_noise,

@@ -1,7 +1,7 @@
 """Tests of contactpose.solvers.factor_graph against independent references.
 
 References: numerical derivatives on the Pose3 retraction (gtsam.utils.numerical_derivative),
-the residuals of contactpose.solvers.residuals, GTSAM's own mEstimator losses and per-factor
+the residuals of contactpose.costs.facet, GTSAM's own mEstimator losses and per-factor
 Robust noise models, scipy.optimize.least_squares on the same cost, and the inverse
 Gauss-Newton Hessian.
 """
@@ -17,6 +17,9 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from contactpose.contacts import Contacts, Tolerance
+from contactpose.costs import association, facet, frame
+from contactpose.costs import robust as kernels
+from contactpose.costs import smooth as smooth_model
 from contactpose.errors import ContactPoseError
 from contactpose.geometry.metrics import rotation_error_deg, translation_error
 from contactpose.localize import localize
@@ -25,7 +28,6 @@ from contactpose.scoring.rank import closed_form_arrays
 from contactpose.scoring.status import ambiguous
 from contactpose.sim import grasps as simulate
 from contactpose.solvers import factor_graph as fg
-from contactpose.solvers import residuals
 from contactpose.types import HypothesisArrays, PoseFit, PosePrior
 
 #: Jacobians must match numerical derivatives to this, relative to the largest entry.
@@ -77,7 +79,7 @@ def _mixed_contacts(model, rng, n_in=3, n_out=3):
 
 def _numeric_jacobian(data, pk, pose, point_to_facet, robust):
     def h(P):
-        return fg.contact_residuals(P.matrix(), data, pk, jacobian=False)[0]
+        return facet.factor_rows(P.matrix(), data, pk, jacobian=False)[0]
     return numericalDerivative11(h, pose, delta=1e-6)
 
 
@@ -88,18 +90,18 @@ def _numeric_jacobian(data, pk, pose, point_to_facet, robust):
 def test_jacobian_matches_numerical_derivative(rock, robust, point_to_facet):
     rng = np.random.default_rng(7)
     tol = _tolerance(rock)
-    pk = fg.kernel_params(tol, robust, point_to_facet)
+    pk = facet.kernel_params(tol, robust, point_to_facet)
     worst = 0.0
     for _ in range(10):
         contacts, facets, _, pose = _mixed_contacts(rock, rng)
-        data = fg.pack_contacts(rock, contacts, facets)
-        e, J = fg.contact_residuals(pose.matrix(), data, pk)
+        data = facet.pack_contacts(rock, contacts, facets)
+        e, J = facet.factor_rows(pose.matrix(), data, pk)
         J_num = _numeric_jacobian(data, pk, pose, point_to_facet, robust)
-        assert J.shape == (fg.factor_dim(len(facets), point_to_facet), 6)
+        assert J.shape == (facet.factor_dim(len(facets), point_to_facet), 6)
         worst = max(worst, np.abs(J - J_num).max() / np.abs(J).max())
         if point_to_facet:
             n = len(facets)
-            r_l = fg.lateral_norms(e, n)
+            r_l = facet.lateral_norms(e, n)
             assert np.all(r_l[3:] > 0) and np.all(r_l[:3] == 0)  # r_l active / inside
     assert worst < JAC_RTOL
 
@@ -108,9 +110,9 @@ def test_gtsam_linearizes_with_our_jacobian(rock):
     """Shapes are not checked by CustomFactor: what GTSAM sees must be exactly (J, -e)."""
     rng = np.random.default_rng(3)
     contacts, facets, _, pose = _mixed_contacts(rock, rng)
-    data = fg.pack_contacts(rock, contacts, facets)
-    pk = fg.kernel_params(_tolerance(rock), "huber")
-    e, J = fg.contact_residuals(pose.matrix(), data, pk)
+    data = facet.pack_contacts(rock, contacts, facets)
+    pk = facet.kernel_params(_tolerance(rock), "huber")
+    e, J = facet.factor_rows(pose.matrix(), data, pk)
     values = gtsam.Values()
     values.insert(fg.POSE_KEY, pose)
     A, b = fg.contact_factor(data, pk).linearize(values).jacobian()
@@ -146,20 +148,20 @@ def test_factor_error_is_the_residuals_module(rock):
     tol = _tolerance(rock)
     contacts, facets, _, pose = _mixed_contacts(rock, rng)
     T = pose.matrix()
-    e, _ = fg.contact_residuals(T, fg.pack_contacts(rock, contacts, facets), fg.kernel_params(tol, "none"))
+    e, _ = facet.factor_rows(T, facet.pack_contacts(rock, contacts, facets), facet.kernel_params(tol, "none"))
     n = len(facets)
     R, t = T[None, :3, :3], T[None, :3, 3]
     normals = rock.planes.normals[facets][None]
-    p = residuals.to_object_frame(R, t, contacts.points)
-    r_n = residuals.normal_residuals(R, normals, contacts.finger_normals)[0]
-    r_o = residuals.offset_residuals(p, normals, rock.planes.offsets[facets][None])
-    r_l = residuals.lateral_residuals(p, rock.triangles[facets][None], r_o)[0]
+    p = frame.object_frame(R, t, contacts.points)
+    r_n = facet.normal_residuals(R, normals, contacts.finger_normals)[0]
+    r_o = facet.offset_residuals(p, normals, rock.planes.offsets[facets][None])
+    r_l = facet.lateral_residuals(p, rock.triangles[facets][None], r_o)[0]
     np.testing.assert_allclose(e[:3 * n] * tol.normal_noise, r_n.ravel(), atol=1e-15)
     np.testing.assert_allclose(e[3 * n:4 * n] * tol.position_noise, r_o[0], atol=1e-15)
     # residuals.py forms sqrt(dist² - r_o²), which leaves ~sqrt(eps)·|r_o| for a contact over
     # its triangle; the factor takes the in-plane part of the vector to the closest point.
-    np.testing.assert_allclose(fg.lateral_norms(e, n) * tol.position_noise, r_l, atol=1e-7 * np.abs(r_o).max())
-    chi2 = residuals.whitened_cost(r_n[None], r_o, r_l[None], tol.normal_noise, tol.position_noise)[0]
+    np.testing.assert_allclose(facet.lateral_norms(e, n) * tol.position_noise, r_l, atol=1e-7 * np.abs(r_o).max())
+    chi2 = facet.whitened_cost(r_n[None], r_o, r_l[None], tol.normal_noise, tol.position_noise)[0]
     assert e @ e == pytest.approx(chi2, rel=1e-12)
 
 
@@ -170,14 +172,14 @@ def test_robust_block_loss_is_gtsam_mestimator(rock, robust, estimator):
     rng = np.random.default_rng(6)
     tol = _tolerance(rock)
     contacts, facets, _, pose = _mixed_contacts(rock, rng)
-    data = fg.pack_contacts(rock, contacts, facets)
-    e0, _ = fg.contact_residuals(pose.matrix(), data, fg.kernel_params(tol, "none"))
-    e1, _ = fg.contact_residuals(pose.matrix(), data, fg.kernel_params(tol, robust))
+    data = facet.pack_contacts(rock, contacts, facets)
+    e0, _ = facet.factor_rows(pose.matrix(), data, facet.kernel_params(tol, "none"))
+    e1, _ = facet.factor_rows(pose.matrix(), data, facet.kernel_params(tol, robust))
     n = len(facets)
     rows = [np.r_[3 * i:3 * i + 3, 3 * n + i, 4 * n + 2 * i, 4 * n + 2 * i + 1] for i in range(n)]
-    rho = estimator.Create(fg.kernel_params(tol, robust)[2])
+    rho = estimator.Create(facet.kernel_params(tol, robust)[2])
     s = np.array([np.linalg.norm(e0[r]) for r in rows])
-    assert s.max() > 3 * fg.HUBER_K  # some blocks are in the robust zone
+    assert s.max() > 3 * kernels.HUBER_K  # some blocks are in the robust zone
     for r, si in zip(rows, s):
         assert 0.5 * e1[r] @ e1[r] == pytest.approx(rho.loss(si), rel=1e-12)
 
@@ -189,9 +191,9 @@ def test_batched_robust_equals_per_contact_gtsam_robust(rock, robust):
     rng = np.random.default_rng(8)
     tol = _tolerance(rock)
     contacts, facets, T_true, pose = _mixed_contacts(rock, rng, n_in=4, n_out=1)
-    packed = fg.pack_contacts(rock, contacts, facets)
+    packed = facet.pack_contacts(rock, contacts, facets)
     batched = gtsam.NonlinearFactorGraph()
-    batched.add(fg.contact_factor(packed, fg.kernel_params(tol, robust)))
+    batched.add(fg.contact_factor(packed, facet.kernel_params(tol, robust)))
     single = gtsam.NonlinearFactorGraph()
     for factor in fg.reweighted_contact_factors(packed, tol, robust, point_to_facet=True):
         single.add(factor)
@@ -212,7 +214,7 @@ def test_reweighted_linearization_has_the_cost_gradient(rock, robust):
     rng = np.random.default_rng(11)
     tol = _tolerance(rock)
     contacts, facets, _, pose = _mixed_contacts(rock, rng)
-    packed = fg.pack_contacts(rock, contacts, facets)
+    packed = facet.pack_contacts(rock, contacts, facets)
     graph = gtsam.NonlinearFactorGraph()
     for factor in fg.reweighted_contact_factors(packed, tol, robust, point_to_facet=True):
         graph.add(factor)
@@ -228,17 +230,17 @@ def test_reweighted_linearization_has_the_cost_gradient(rock, robust):
     grad = np.array([(cost(h * u) - cost(-h * u)) / (2 * h) for u in np.eye(6)])
     np.testing.assert_allclose(-A.T @ b, grad, rtol=1e-5, atol=1e-6 * np.abs(grad).max())
 
-    plain = fg.kernel_params(tol, "none")
+    plain = facet.kernel_params(tol, "none")
     hessian = np.zeros((6, 6))
     for i in range(len(facets)):
-        e, J = fg.contact_residuals(pose.matrix(), packed[i:i + 1], plain)
+        e, J = facet.factor_rows(pose.matrix(), packed[i:i + 1], plain)
         s = np.linalg.norm(e)
-        k = fg.HUBER_K
+        k = kernels.HUBER_K
         w = {"none": 1.0, "huber": min(1.0, k / s), "cauchy": 1.0 / (1.0 + s * s / (k * k))}[robust]
         hessian += w * J.T @ J
     if robust != "none":
-        assert max(np.linalg.norm(fg.contact_residuals(pose.matrix(), packed[i:i + 1], plain)[0])
-                   for i in range(len(facets))) > 3 * fg.HUBER_K  # some contacts are in the linear part
+        assert max(np.linalg.norm(facet.factor_rows(pose.matrix(), packed[i:i + 1], plain)[0])
+                   for i in range(len(facets))) > 3 * kernels.HUBER_K  # some contacts are in the linear part
     np.testing.assert_allclose(A.T @ A, hessian, rtol=1e-10, atol=1e-12 * np.abs(hessian).max())
 
 
@@ -263,10 +265,10 @@ def test_same_optimum_as_scipy_least_squares(rock):
 
         def fun(x):
             R = Rotation.from_rotvec(x[:3]).as_matrix()[None]
-            p = residuals.to_object_frame(R, x[None, 3:], g.contacts.points)
-            r_n = residuals.normal_residuals(R, normals, g.contacts.finger_normals)
+            p = frame.object_frame(R, x[None, 3:], g.contacts.points)
+            r_n = facet.normal_residuals(R, normals, g.contacts.finger_normals)
             return np.concatenate([r_n.ravel() / tol.normal_noise,
-                                   residuals.offset_residuals(p, normals, offsets).ravel() / tol.position_noise])
+                                   facet.offset_residuals(p, normals, offsets).ravel() / tol.position_noise])
         T0 = arrays.poses[0]
         x0 = np.concatenate([Rotation.from_matrix(T0[:3, :3]).as_rotvec(), T0[:3, 3]])
         sol = least_squares(fun, x0, xtol=1e-15, ftol=1e-15, gtol=1e-15)
@@ -290,8 +292,8 @@ def test_covariance_is_inverse_gauss_newton_hessian(rock):
         cov = ref.covariance[0]
         assert np.allclose(cov, cov.T, rtol=0, atol=1e-12 * np.abs(cov).max())
         assert np.linalg.eigvalsh(cov).min() > 0
-        _, J = fg.contact_residuals(ref.poses[0], fg.pack_contacts(rock, g.contacts, g.facets),
-                                    fg.kernel_params(tol, robust))
+        _, J = facet.factor_rows(ref.poses[0], facet.pack_contacts(rock, g.contacts, g.facets),
+                                    facet.kernel_params(tol, robust))
         np.testing.assert_allclose(cov, np.linalg.inv(J.T @ J), rtol=1e-6, atol=1e-9 * np.abs(cov).max())
 
 
@@ -424,23 +426,23 @@ def test_covariance_leaves_out_the_point_to_facet_hinge(rock):
     arrays = closed_form_arrays(rock, contacts, g.facets[None], tol)
     ref = fg.refine_hypotheses(rock, contacts, arrays, tol, robust="none", k=1)
     T = ref.poses[0]
-    data = fg.pack_contacts(rock, contacts, ref.facets[0])
-    e_full, _ = fg.contact_residuals(T, data, fg.kernel_params(tol, "none"), jacobian=False)
-    assert fg.lateral_norms(e_full, contacts.n).max() > 0.5  # the hinge is active (whitened)
+    data = facet.pack_contacts(rock, contacts, ref.facets[0])
+    e_full, _ = facet.factor_rows(T, data, facet.kernel_params(tol, "none"), jacobian=False)
+    assert facet.lateral_norms(e_full, contacts.n).max() > 0.5  # the hinge is active (whitened)
 
     def jacobian(params, h=1e-6):
-        J = np.empty((fg.factor_dim(contacts.n, params[4] != 0.0), 6))
+        J = np.empty((facet.factor_dim(contacts.n, params[4] != 0.0), 6))
         for i in range(6):
             d = np.zeros(6)
             d[i] = h
-            plus = fg.contact_residuals(T @ gtsam.Pose3.Expmap(d).matrix(), data, params, jacobian=False)[0]
-            minus = fg.contact_residuals(T @ gtsam.Pose3.Expmap(-d).matrix(), data, params, jacobian=False)[0]
+            plus = facet.factor_rows(T @ gtsam.Pose3.Expmap(d).matrix(), data, params, jacobian=False)[0]
+            minus = facet.factor_rows(T @ gtsam.Pose3.Expmap(-d).matrix(), data, params, jacobian=False)[0]
             J[:, i] = (plus - minus) / (2 * h)
         return J
 
-    J = jacobian(fg.kernel_params(tol, "none", point_to_facet=False))
+    J = jacobian(facet.kernel_params(tol, "none", point_to_facet=False))
     np.testing.assert_allclose(ref.covariance[0], np.linalg.inv(J.T @ J), rtol=1e-4, atol=1e-16)
-    J_full = jacobian(fg.kernel_params(tol, "none"))
+    J_full = jacobian(facet.kernel_params(tol, "none"))
     assert np.linalg.det(np.linalg.inv(J_full.T @ J_full)) < 0.9 * np.linalg.det(ref.covariance[0])
 
 
@@ -564,7 +566,7 @@ def test_facets_move_to_the_member_that_fits_on_a_curved_region():
         g = simulate.grasp(model, rng, n=4, position_noise=tol.position_noise, normal_noise_deg=1.0)
         poses = np.stack([g.pose, g.pose])
         facets = np.stack([g.facets, g.facets])
-        got = fg.fitting_facets(model, g.contacts, facets, poses, tol)[0]
+        got = association.fitting_facets(model, g.contacts, facets, poses, tol)[0]
         R, t = g.pose[:3, :3], g.pose[:3, 3]
         p = (g.contacts.points - t) @ R
         for i, f in enumerate(g.facets):
@@ -733,16 +735,16 @@ def test_nearest_fit_facets_is_the_brute_force_minimum(name):
         poses[:, :3, 3] += 0.05 * d * rng.random((4, 1)) * rng.normal(size=(4, 3))
         poses[1:, :3, :3] = Rotation.from_rotvec(np.radians(3.0) * rng.normal(size=(3, 3))).as_matrix() @ g.pose[:3, :3]
         truth = np.stack([brute_force(g.contacts, T) for T in poses])
-        np.testing.assert_array_equal(fg.nearest_fit_facets(model, g.contacts, poses[0], tol), truth[0])
-        np.testing.assert_array_equal(fg.nearest_fit_facets(model, g.contacts, poses, tol), truth)
+        np.testing.assert_array_equal(association.nearest_fit_facets(model, g.contacts, poses[0], tol), truth[0])
+        np.testing.assert_array_equal(association.nearest_fit_facets(model, g.contacts, poses, tol), truth)
         # under pose uncertainty (association_weights, tested below): each contact its own weight
         P = _random_covariance(rng, sigma_rot=np.radians(2.0), sigma_trans=0.01 * d, n=4)
         R, t = poses[:, :3, :3], poses[:, :3, 3]
         p = np.einsum("hij,hci->hcj", R, g.contacts.points[None] - t[:, None])
         n = -np.einsum("hij,ci->hcj", R, g.contacts.finger_normals)
-        weights = fg.association_weights(p, n, tol, P)
+        weights = association.association_weights(p, n, tol, P)
         truth = np.stack([brute_force(g.contacts, T, w) for T, w in zip(poses, weights)])
-        np.testing.assert_array_equal(fg.nearest_fit_facets(model, g.contacts, poses, tol, P), truth)
+        np.testing.assert_array_equal(association.nearest_fit_facets(model, g.contacts, poses, tol, P), truth)
 
 
 def _random_covariance(rng, sigma_rot, sigma_trans, n):
@@ -761,7 +763,7 @@ def test_association_weights_are_the_sampled_spread_of_point_and_normal():
     p = rng.normal(scale=0.05, size=(1, 5, 3))
     n = rng.normal(size=(1, 5, 3))
     n /= np.linalg.norm(n, axis=2, keepdims=True)
-    np.testing.assert_allclose(fg.association_weights(p, n, tol), (0.0005 / np.radians(1.0)) ** 2)
+    np.testing.assert_allclose(association.association_weights(p, n, tol), (0.0005 / np.radians(1.0)) ** 2)
     P = _random_covariance(rng, sigma_rot=np.radians(1.5), sigma_trans=0.002, n=1)[0]
     xi = rng.multivariate_normal(np.zeros(6), P, size=200_000)
     R = Rotation.from_rotvec(xi[:, :3]).as_matrix()
@@ -770,7 +772,7 @@ def test_association_weights_are_the_sampled_spread_of_point_and_normal():
     point_var = moved.var(axis=0).sum(axis=1) / 3.0
     normal_var = turned.var(axis=0).sum(axis=1) / 2.0
     sampled = (tol.position_noise**2 + point_var) / (tol.normal_noise**2 + normal_var)
-    np.testing.assert_allclose(fg.association_weights(p, n, tol, P)[0], sampled, rtol=0.02)
+    np.testing.assert_allclose(association.association_weights(p, n, tol, P)[0], sampled, rtol=0.02)
 
 
 @functools.lru_cache(maxsize=2)
@@ -906,13 +908,13 @@ def test_smooth_normal_rows_are_whitened_by_noise_and_roughness():
             cov = tol.normal_noise**2 * np.eye(3) + model.normal_scatter[f] + tol.position_noise**2 * Dn @ Dn.T
             assert rows[i] @ rows[i] == pytest.approx(u[i] @ np.linalg.solve(cov, u[i]), rel=1e-6)
             assert rows[i] @ rows[i] == pytest.approx((R @ u[i]) @ np.linalg.solve(R @ cov @ R.T, R @ u[i]), rel=1e-6)
-            W = fg.smooth_data(model, g.contacts, g.facets, tol)[1][i, 16:25].reshape(3, 3)
+            W = smooth_model.smooth_data(model, g.contacts, g.facets, tol)[1][i, 16:25].reshape(3, 3)
             np.testing.assert_allclose(W, W.T, atol=1e-12)
             np.testing.assert_allclose(rows[i], W @ u[i], rtol=1e-9, atol=1e-12)
         stacked = np.stack([g.facets, np.roll(g.facets, 1)])  # several tracks' facets packed at once
-        data, smooth = fg.smooth_data(model, g.contacts, stacked, tol)
+        data, smooth = smooth_model.smooth_data(model, g.contacts, stacked, tol)
         for h in range(2):
-            one = fg.smooth_data(model, g.contacts, stacked[h], tol)
+            one = smooth_model.smooth_data(model, g.contacts, stacked[h], tol)
             np.testing.assert_array_equal(data[h], one[0])
             np.testing.assert_array_equal(smooth[h], one[1])
 
@@ -950,7 +952,7 @@ def test_smooth_factor_without_place_holds_the_normal_still():
     rng = np.random.default_rng(6)
     for _ in range(5):
         g = simulate.grasp(model, rng, n=2, position_noise=tol.position_noise, normal_noise_deg=1.0)
-        data, smooth = fg.smooth_data(model, g.contacts, g.facets, tol)
+        data, smooth = smooth_model.smooth_data(model, g.contacts, g.facets, tol)
         pose = gtsam.Pose3(g.pose).retract(1e-2 * rng.normal(size=6))
         at = gtsam.Values()
         at.insert(0, pose)
@@ -1000,7 +1002,7 @@ def test_smooth_normals_track_an_ellipsoid_closer_than_facet_normals():
             X = delta @ X
             touches.append((delta, X, touch(X, 2)))
         for m in errors:
-            t = PoseTrack(model, first, fg.nearest_fit_facets(model, first, start, tol), start, tol, contact_model=m)
+            t = PoseTrack(model, first, association.nearest_fit_facets(model, first, start, tol), start, tol, contact_model=m)
             for delta, truth, contacts in touches:
                 t.add(contacts, hand_motion=(delta, 0.1, 0.0001))
             errors[m] += [rotation_error_deg(T, Y) for T, Y in zip(t.relinearize()[1:], [Y for _, Y, _ in touches])]
@@ -1082,10 +1084,10 @@ def test_smooth_rows_on_a_crease_edge_are_the_distance_to_its_arc_of_normals():
     nu /= np.linalg.norm(nu, axis=1, keepdims=True)
     R, t = pose[:3, :3], pose[:3, 3]
     contacts = Contacts((p + off) @ R.T + t, finger_normals=-(nu @ R.T))
-    data, smooth = fg.smooth_data(model, contacts, f, tol)
-    params = fg.kernel_params(tol, "none", False)
-    e, J = np.empty(fg.factor_dim(contacts.n, False)), np.empty((fg.factor_dim(contacts.n, False), 6))
-    fg._smooth_rows(pose, data, params, smooth, True, e, J)
+    data, smooth = smooth_model.smooth_data(model, contacts, f, tol)
+    params = facet.kernel_params(tol, "none", False)
+    e, J = np.empty(facet.factor_dim(contacts.n, False)), np.empty((facet.factor_dim(contacts.n, False), 6))
+    smooth_model.smooth_rows(pose, data, params, smooth, True, e, J)
     rows = e[:3 * contacts.n].reshape(-1, 3)
     edge = model.crease_edges[f, k]
     n_f, n_g = model.planes.normals[f], edge[:, 9:12]
@@ -1191,8 +1193,8 @@ def test_nearest_fit_facets_with_creases_is_the_brute_force_minimum(name):
     poses = np.stack([pose] * 3)
     poses[1:, :3, 3] += 0.02 * d * rng.normal(size=(2, 3)) / np.sqrt(3)
     poses[1:, :3, :3] = Rotation.from_rotvec(np.radians(2.0) * rng.normal(size=(2, 3)) / np.sqrt(3)).as_matrix() @ pose[:3, :3]
-    found = fg.nearest_fit_facets(model, contacts, poses, tol, creases=True)
-    plain = fg.nearest_fit_facets(model, contacts, poses, tol)
+    found = association.nearest_fit_facets(model, contacts, poses, tol, creases=True)
+    plain = association.nearest_fit_facets(model, contacts, poses, tol)
     took_edge = 0
     for h, T in enumerate(poses):
         cost = brute_force_costs(contacts, T)

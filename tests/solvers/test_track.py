@@ -8,6 +8,8 @@ from scipy.spatial.transform import Rotation
 
 from contactpose import localize
 from contactpose.contacts import Contacts, Tolerance
+from contactpose.costs import association, facet
+from contactpose.costs import robust as kernels
 from contactpose.errors import ContactPoseError
 from contactpose.geometry.metrics import rotation_error_deg
 from contactpose.model.object_model import ObjectModel
@@ -169,9 +171,9 @@ def test_static_touches_are_one_pose(rock_model):
     track.add(g.contacts.permuted([6, 7]), g.facets[6:8])
     assert len(track.poses) == 1
     graph, spread = gtsam.NonlinearFactorGraph(), gtsam.NonlinearFactorGraph()
-    data = fg.pack_contacts(rock, g.contacts, g.facets)
-    graph.add(fg.contact_factor(data, fg.kernel_params(tol, "huber")))
-    spread.add(fg.contact_factor(data, fg.kernel_params(tol, "huber", point_to_facet=False)))
+    data = facet.pack_contacts(rock, g.contacts, g.facets)
+    graph.add(fg.contact_factor(data, facet.kernel_params(tol, "huber")))
+    spread.add(fg.contact_factor(data, facet.kernel_params(tol, "huber", point_to_facet=False)))
     pose, _, cov, _ = fg._optimize(graph, g.pose, fg.lm_params(max_iterations=100, relative_tol=1e-12,
                                                                absolute_tol=1e-14), spread)
     np.testing.assert_allclose(track.relinearize()[0], pose, atol=1e-9)
@@ -288,7 +290,7 @@ def _quarter_turn(model, contacts, pose, tol):
     turn = np.eye(4)
     turn[:3, :3] = Rotation.from_rotvec([0.0, 0.0, np.pi / 2]).as_matrix()
     wrong = pose @ turn
-    return fg.nearest_fit_facets(model, contacts, wrong[None], tol, None)[0], wrong
+    return association.nearest_fit_facets(model, contacts, wrong[None], tol, None)[0], wrong
 
 
 @pytest.mark.parametrize("seed", range(3))
@@ -414,7 +416,7 @@ def test_association_covariance_adds_where_lm_puts_the_reassociated_optimum(cont
             if i > 0:
                 drawn = track.hand[k] @ estimate.atPose3(k).retract(xi[6 * k:6 * k + 6]).matrix()
                 uncertain = joint[6 * k:6 * k + 6, 6 * k:6 * k + 6] if track.contact_model in trackmod.UNCERTAIN_ASSOCIATION else None
-                facets = fg.nearest_fit_facets(banana, contacts, drawn, tol, uncertain)
+                facets = association.nearest_fit_facets(banana, contacts, drawn, tol, uncertain)
             for factor in track._factors(contacts.transformed(rigid_inverse(track.hand[k])), facets, k)[0]:
                 graph.add(factor)
         params = fg.lm_params(max_iterations=200, relative_tol=1e-12, absolute_tol=1e-16)
@@ -457,7 +459,7 @@ def test_surface_contact_model_follows_fingertip_contacts_on_edges(rock_model):
     """Noise-free rounded-fingertip contacts, many on edges and vertices, exact hand motions and
     no slip, started 1° and 0.5 % of the diameter off: with the surface contact model the
     smoothed trajectory is the true one; the facet model is biased by the edge contacts."""
-    from tests.model.test_surface import _edge_grasp
+    from tests.costs.test_surface import _edge_grasp
 
     model = ObjectModel.from_mesh(objects.load("rock1k"))
     rng = np.random.default_rng(12)
@@ -499,11 +501,11 @@ def test_track_contact_factors_cost_what_the_batched_factor_costs(rock_model, co
     if contact_model == "smooth":
         batched.add(fg.smooth_contact_factor(rock, contacts, g.facets, tol, key=0))
     else:
-        batched.add(fg.contact_factor(fg.pack_contacts(rock, contacts, g.facets), fg.kernel_params(tol, "huber"), key=0))
+        batched.add(fg.contact_factor(facet.pack_contacts(rock, contacts, g.facets), facet.kernel_params(tol, "huber"), key=0))
     values = gtsam.Values()
     values.insert(0, gtsam.Pose3(g.pose))
     assert track.graph.size() == 4
-    assert 2.0 * batched.error(values) > 3 * fg.HUBER_K ** 2  # the moved contact is in the linear part
+    assert 2.0 * batched.error(values) > 3 * kernels.HUBER_K ** 2  # the moved contact is in the linear part
     assert track.graph.error(values) == pytest.approx(batched.error(values), rel=1e-12)
     params = fg.lm_params(max_iterations=200, relative_tol=1e-14, absolute_tol=0.0)
     best = gtsam.LevenbergMarquardtOptimizer(batched, values, params).optimize().atPose3(0).matrix()
@@ -539,7 +541,7 @@ def test_reassociation_stops_where_the_facets_hold_or_come_back(monkeypatch):
     cycles = 0
     for contacts, _, motion in touches[1:]:
         swapped.clear()
-        starts = {id(t): tuple(fg.nearest_fit_facets(banana, contacts, t._predicted(checked_motion(motion)), tol))
+        starts = {id(t): tuple(association.nearest_fit_facets(banana, contacts, t._predicted(checked_motion(motion)), tol))
                   for t in tracks}
         add_touch(tracks, contacts, checked_motion(motion))
         for t in tracks:

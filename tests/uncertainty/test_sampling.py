@@ -11,6 +11,8 @@ import numpy as np
 import pytest
 
 from contactpose.contacts import Contacts, Tolerance
+from contactpose.costs import facet
+from contactpose.costs import robust as kernels
 from contactpose.errors import ContactPoseError
 from contactpose.geometry import se3
 from contactpose.localize import localize
@@ -76,14 +78,14 @@ def test_robust_kernel_bounds_the_penalty_of_a_far_contact(rock_model):
            for r in ROBUST}
     assert lik["none"] < lik["huber"] < lik["cauchy"] < 0
     # reference: GTSAM's mEstimator losses on each contact's whitened block norm s_i
-    e, _ = fg.contact_residuals(g.pose, fg.pack_contacts(rock_model, bad, g.facets), fg.kernel_params(tol))
+    e, _ = facet.factor_rows(g.pose, facet.pack_contacts(rock_model, bad, g.facets), facet.kernel_params(tol))
     n = bad.n
     blocks = np.stack([e[3 * i:3 * i + 3].tolist() + [e[3 * n + i], e[4 * n + 2 * i], e[4 * n + 2 * i + 1]]
                        for i in range(n)])
     s = np.linalg.norm(blocks, axis=1)
     assert s[0] > 35 and lik["none"] == pytest.approx(-0.5 * np.sum(s**2), rel=1e-12)
-    huber = gtsam.noiseModel.mEstimator.Huber.Create(fg.HUBER_K)
-    cauchy = gtsam.noiseModel.mEstimator.Cauchy.Create(fg.CAUCHY_K)
+    huber = gtsam.noiseModel.mEstimator.Huber.Create(kernels.HUBER_K)
+    cauchy = gtsam.noiseModel.mEstimator.Cauchy.Create(kernels.CAUCHY_K)
     assert lik["huber"] == pytest.approx(-sum(huber.loss(x) for x in s), rel=1e-9)
     assert lik["cauchy"] == pytest.approx(-sum(cauchy.loss(x) for x in s), rel=1e-9)
 
@@ -254,13 +256,12 @@ def test_mixture_splits_samples_by_probability(banana_model):
 @pytest.mark.parametrize("robust", ["none", "huber", "cauchy"])
 def test_robust_rho_is_the_gtsam_loss(robust):
     s = np.linspace(0.0, 12.0, 97)
-    params = fg.kernel_params(Tolerance.from_noise(0.001, 1.0), robust)
-    got = fg.robust_rho(s, params[5], params[2])
+    got = kernels.robust_rho(s, robust)
     if robust == "none":
         ref = 0.5 * s**2
     else:
         est = {"huber": gtsam.noiseModel.mEstimator.Huber, "cauchy": gtsam.noiseModel.mEstimator.Cauchy}[robust]
-        ref = np.array([est.Create(params[2]).loss(x) for x in s])
+        ref = np.array([est.Create(kernels.kernel_width(robust)).loss(x) for x in s])
     np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-12)
 
 
@@ -269,7 +270,7 @@ def test_surface_posterior_is_the_facet_posterior_where_contacts_stay_on_their_f
     """Near a pose where every contact lands on its own face, the surface contact model's
     likelihood is the factor graph's (normal, offset and lateral terms of those facets); where
     a contact lands elsewhere it is lower in cost, never higher (the facet is one feature)."""
-    from contactpose.solvers.surface import landing
+    from contactpose.costs.surface import landing
 
     g, tol = _grasp(rock_model, 3)
     ref = _refined(rock_model, g, tol, robust=robust)

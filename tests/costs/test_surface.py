@@ -10,13 +10,14 @@ from scipy.spatial.transform import Rotation
 
 from contactpose import Contacts, ObjectModel
 from contactpose.contacts import Tolerance
+from contactpose.costs import surface
+from contactpose.costs.surface import SurfaceResiduals, landing
 from contactpose.geometry.se3 import retract
-from contactpose.model import surface
 from contactpose.model.object_model import merged_mesh
 from contactpose.scoring.rank import hypothesis_arrays
 from contactpose.sim import fingertip, objects
 from contactpose.solvers.closed_form import fit_poses
-from contactpose.solvers.surface import _Problem, landing, surface_fit
+from contactpose.solvers.surface import surface_fit
 
 
 def _unit(v):
@@ -209,7 +210,7 @@ def test_surface_jacobian_matches_finite_differences(name):
     checked = set()
     for trial in range(40):
         pose, noisy, got = _noisy_edge_grasp(model, rng, tol)
-        problem = _Problem(model, noisy, pose[:3, :3], pose[:3, 3], got.facets, tol, 1.0)
+        problem = SurfaceResiduals(model, noisy, pose[:3, :3], pose[:3, 3], got.facets, tol, 1.0)
         xi = rng.normal(scale=1e-3, size=6) * np.r_[1, 1, 1, [model.diameter] * 3]
         R, t = retract(pose[None, :3, :3], pose[None, :3, 3], xi[None])
         at = landing(model, noisy, R[0], t[0], got.facets, tol)
@@ -221,10 +222,10 @@ def test_surface_jacobian_matches_finite_differences(name):
             e = np.zeros(6)
             e[c] = h[c]
             for sign in (1, -1):
-                moved_at = _Problem(model, noisy, pose[:3, :3], pose[:3, 3], got.facets, tol, 1.0)
+                moved_at = SurfaceResiduals(model, noisy, pose[:3, :3], pose[:3, 3], got.facets, tol, 1.0)
                 moved_at.residuals(xi + sign * e)
-                same &= np.array_equal(moved_at._at[3].kind, at.kind) and np.array_equal(
-                    moved_at._at[3].ncode, at.ncode) and np.array_equal(moved_at._at[3].pcode, at.pcode)
+                same &= np.array_equal(moved_at.landed.kind, at.kind) and np.array_equal(
+                    moved_at.landed.ncode, at.ncode) and np.array_equal(moved_at.landed.pcode, at.pcode)
             numeric[:, c] = (problem.residuals(xi + e) - problem.residuals(xi - e)) / (2 * h[c])
         if not same:
             continue
@@ -241,7 +242,7 @@ def test_has_regions_only_when_patches_grown_above_the_coplanar_tolerance_are_se
 
 
 def test_surface_factor_jacobian_is_the_pose3_tangent_derivative():
-    """The GTSAM factor of χ²_S: its error is the residual of _Problem at the pose, and its
+    """The GTSAM factor of χ²_S: its error is the residual of SurfaceResiduals at the pose, and its
     Jacobian matches central differences through Pose3.retract (rotation first), wherever no
     contact changes feature within the step."""
     import gtsam
@@ -258,7 +259,7 @@ def test_surface_factor_jacobian_is_the_pose3_tangent_derivative():
         values = gtsam.Values()
         values.insert(0, gtsam.Pose3(pose))
         e = factor.unwhitenedError(values)
-        problem = _Problem(model, noisy, pose[:3, :3], pose[:3, 3], got.facets, tol, 1.0)
+        problem = SurfaceResiduals(model, noisy, pose[:3, :3], pose[:3, 3], got.facets, tol, 1.0)
         assert np.allclose(e, problem.residuals(np.zeros(6)), rtol=0, atol=1e-12)
         A, b = factor.linearize(values).jacobian()
         h = 1e-7 * np.r_[1, 1, 1, [model.diameter] * 3]
@@ -270,10 +271,10 @@ def test_surface_factor_jacobian_is_the_pose3_tangent_derivative():
             for sign in (1, -1):
                 moved_values = gtsam.Values()
                 moved_values.insert(0, gtsam.Pose3(pose).retract(sign * step))
-                probe = _Problem(model, noisy, *(lambda T: (T[:3, :3], T[:3, 3]))(moved_values.atPose3(0).matrix()),
+                probe = SurfaceResiduals(model, noisy, *(lambda T: (T[:3, :3], T[:3, 3]))(moved_values.atPose3(0).matrix()),
                                  got.facets, tol, 1.0)
                 probe.residuals(np.zeros(6))
-                same &= np.array_equal(probe._at[3].kind, problem._at[3].kind)
+                same &= np.array_equal(probe.landed.kind, problem.landed.kind)
                 errors.append(surface_factor(model, noisy, got.facets, tol, 0).unwhitenedError(moved_values))
             numeric[:, c] = (errors[0] - errors[1]) / (2 * h[c])
         if not same:
