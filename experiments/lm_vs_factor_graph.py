@@ -50,12 +50,12 @@ from contactpose.geometry.metrics import SAME_CLASS_ADDS_FRAC, adds, pose_succes
 from contactpose.localize import localize
 from contactpose.model.object_model import ObjectModel
 from contactpose.options import AMBIGUOUS_PROBABILITY, DEFAULT_REFINE, OUTLIER_PENALTY, ROBUST
+from contactpose.scoring import refine
 from contactpose.scoring.classes import pose_classes
 from contactpose.scoring.rank import closed_form_arrays, refined_arrays
 from contactpose.scoring.status import ambiguous
 from contactpose.sim import grasps as simulate
 from contactpose.sim import objects
-from contactpose.solvers import factor_graph as fg
 from contactpose.solvers.lm import fit_lm_all
 from contactpose.types import PosePrior
 
@@ -150,10 +150,10 @@ def run_grasp(model, name, g, sx_frac, sn_deg, priors, rng, part):
     rows = []
     found = len(arrays.cost) > 0
     clock = time.perf_counter()
-    ref = fg.refine_hypotheses(model, g.contacts, arrays, tol) if found else None
+    ref = refine.refine_hypotheses(model, g.contacts, arrays, tol) if found else None
     t_fg = time.perf_counter() - clock
     fg_amb = int(refined_ambiguous(model, g.contacts, ref, arrays, tol)) if found else 0
-    oracle_fg = fg.refine_hypotheses(model, g.contacts, true_arrays, tol).poses[0]
+    oracle_fg = refine.refine_hypotheses(model, g.contacts, true_arrays, tol).poses[0]
     for sr, st in priors:
         prior = noisy_prior(g.pose, sr, st * model.diameter, rng)
         level = dict(base, prior_rot_deg=sr, prior_trans_frac=st)
@@ -169,9 +169,9 @@ def run_grasp(model, name, g, sx_frac, sn_deg, priors, rng, part):
         rows.append(row("fg", ref.poses[0] if found else None, oracle_fg, t_loc + t_fg, fg_amb,
                         p_top=ref.probability[0] if found else np.nan))
         clock = time.perf_counter()
-        refp = fg.refine_hypotheses(model, g.contacts, arrays, tol, prior=prior) if found else None
+        refp = refine.refine_hypotheses(model, g.contacts, arrays, tol, prior=prior) if found else None
         t_p = time.perf_counter() - clock
-        oracle = fg.refine_hypotheses(model, g.contacts, true_arrays, tol, prior=prior).poses[0]
+        oracle = refine.refine_hypotheses(model, g.contacts, true_arrays, tol, prior=prior).poses[0]
         rows.append(row("fg-prior", refp.poses[0] if found else None, oracle, t_loc + t_p,
                         int(refined_ambiguous(model, g.contacts, refp, arrays, tol)) if found else 0,
                         reachable(model, refp, g.pose) if found else 0, refp.probability[0] if found else np.nan))
@@ -235,7 +235,7 @@ def acceptance_grasp(model, name, g, rng):
                 reachable=-1)
     rows = []
     for method, p in (("fg-prior", prior), ("fg", None)):
-        oracle = fg.refine_hypotheses(model, g.contacts, true_arrays, tol, prior=p).poses[0]
+        oracle = refine.refine_hypotheses(model, g.contacts, true_arrays, tol, prior=p).poses[0]
         clock = time.perf_counter()
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
@@ -365,7 +365,7 @@ def speed(models, n_refinements, n_trials, rng, repeats=3):
             runs, calls = [], []
             for _ in range(repeats):
                 clock = time.perf_counter()
-                runs.append(fg.refine_hypotheses(model, g.contacts, arrays, tol))
+                runs.append(refine.refine_hypotheses(model, g.contacts, arrays, tol))
                 calls.append((time.perf_counter() - clock) / min(DEFAULT_REFINE, len(arrays.cost)))
             first += runs[0].seconds.tolist()
             wall += np.min([r.seconds for r in runs], axis=0).tolist()
@@ -583,7 +583,7 @@ def main(argv=None):
     config = dict(seed=args.seed, quick=args.quick, parts=args.parts, contact_noise=CONTACT_NOISE,
                   default_contact=DEFAULT_CONTACT, prior_noise=PRIOR_NOISE, default_prior=DEFAULT_PRIOR,
                   lm_candidates=LM_CANDIDATES, outlier_frac=OUTLIER_FRAC, outlier_penalty=OUTLIER_PENALTY,
-                  rescue_widen=fg.RESCUE_WIDEN, acceptance_objects=ACCEPTANCE_OBJECTS,
+                  rescue_widen=refine.RESCUE_WIDEN, acceptance_objects=ACCEPTANCE_OBJECTS,
                   fg_k=DEFAULT_REFINE, huber_k=kernels.HUBER_K, cauchy_k=kernels.CAUCHY_K,
                   ambiguous_probability=AMBIGUOUS_PROBABILITY, success_adds_frac=SAME_CLASS_ADDS_FRAC,
                   **sizes)
@@ -593,7 +593,7 @@ def main(argv=None):
     models = {name: ObjectModel.from_mesh(objects.load(name)) for name in names}
     for model in models.values():  # compile / load the numba kernels outside the timings
         g = simulate.grasp(model, np.random.default_rng(0), n=4)
-        fg.refine_hypotheses(model, g.contacts, localize_arrays(model, g.contacts, 0.001, 1.0)[0],
+        refine.refine_hypotheses(model, g.contacts, localize_arrays(model, g.contacts, 0.001, 1.0)[0],
                              Tolerance.from_noise(0.001, 1.0))
     rows = []
     if "sweep" in args.parts:

@@ -75,14 +75,16 @@ from contactpose.geometry.raycast import raycaster
 from contactpose.geometry.sampling import perturb_normals
 from contactpose.harness import sweep
 from contactpose.io.modelfile import FORMAT_VERSION
-from contactpose.localize import find_pairs, listed_rows, localize
+from contactpose.localize import localize
 from contactpose.localize import warm_up as warm_localize
 from contactpose.model.object_model import ObjectModel, merged_mesh
 from contactpose.model.table import estimate_bytes
 from contactpose.options import STATUSES, fit_threshold
 from contactpose.scoring.infacet import within_noise
+from contactpose.search import find_pairs
 from contactpose.sim import fingertip, objects, ycb
 from contactpose.sim import grasps as simulate
+from contactpose.stages import listed_rows
 
 NAME = "realistic_contacts"
 log = logging.getLogger(NAME)

@@ -48,8 +48,9 @@ from scipy.spatial import cKDTree
 
 from contactpose.geometry import metrics
 from contactpose.harness import sweep
-from contactpose.localize import find_pairs, localize
+from contactpose.localize import localize
 from contactpose.model.object_model import ObjectModel, merged_mesh
+from contactpose.search import find_pairs
 from contactpose.search.tree import TripleTest, join_tuples
 from contactpose.sim import ycb
 from contactpose.uncertainty.bounds import local_quadric, pose_information

@@ -54,10 +54,10 @@ from contactpose.contacts import Tolerance
 from contactpose.costs import facet
 from contactpose.costs import robust as kernels
 from contactpose.model.object_model import ObjectModel
+from contactpose.scoring import refine
 from contactpose.scoring.rank import closed_form_arrays
 from contactpose.sim import grasps as simulate
 from contactpose.sim import objects
-from contactpose.solvers import factor_graph as fg
 from contactpose.uncertainty import sampling as unc
 
 log = logging.getLogger("uncertainty_calibration")
@@ -95,7 +95,7 @@ def draw_grasp(model, spec, tol, rng, max_tries=10_000):
 def run_grasp(model, g, tol, robust, n_samples, rng):
     """Levels of the truth under the three regions, and the sampler's figures. -> dict or None"""
     arrays = closed_form_arrays(model, g.contacts, g.facets[None], tol)
-    ref = fg.refine_hypotheses(model, g.contacts, arrays, tol, robust=robust, k=1)
+    ref = refine.refine_hypotheses(model, g.contacts, arrays, tol, robust=robust, k=1)
     if not ref.determined[0]:
         return None
     T, cov = ref.poses[0], ref.covariance[0]

@@ -101,14 +101,14 @@ WARM_UP_SCRIPT = """
 import numpy as np
 from contactpose.localize import localize, warm_up
 from contactpose.model.object_model import ObjectModel
-from contactpose.scoring import infacet
+from contactpose.solvers import polish
 from contactpose.sim import grasps as simulate, objects
 model = ObjectModel.from_mesh(objects.load("banana"))
 g = simulate.grasp(model, np.random.default_rng(0), n=4, pose=simulate.paper_pose(), where="centroid")
 localize(model, g.contacts, position_noise=0.0005)
-before = len(infacet._bound_kernel.signatures)
+before = len(polish._bound_kernel.signatures)
 warm_up(model, g.contacts, position_noise=0.0005)
-print(before, len(infacet._bound_kernel.signatures))
+print(before, len(polish._bound_kernel.signatures))
 """
 
 

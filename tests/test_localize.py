@@ -670,7 +670,7 @@ def test_keep_fitting_lists_the_best_and_the_hypotheses_that_fit(rock_model, see
 def test_keep_fitting_lists_the_best_few_when_nothing_fits(rock_model):
     """Contacts three times noisier than stated: the best does not fit (poor_fit). When no
     hypothesis fits at all, the best POOR_FIT_LISTED of all distinct poses are listed."""
-    from contactpose.localize import POOR_FIT_LISTED
+    from contactpose.stages import POOR_FIT_LISTED
 
     empty = 0
     for seed in (2, 4, 7, 8):

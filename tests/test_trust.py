@@ -18,15 +18,17 @@ import pytest
 
 from contactpose.contacts import Contacts, Tolerance
 from contactpose.errors import ContactPoseError
-from contactpose.localize import find_pairs, join_hypotheses, localize
+from contactpose.localize import localize
 from contactpose.model import ObjectModel
 from contactpose.options import AMBIGUOUS_PROBABILITY, fit_threshold
 from contactpose.progress import Deadline
 from contactpose.scoring.infacet import within_noise
 from contactpose.scoring.status import ambiguous, status
+from contactpose.search import find_pairs
 from contactpose.search.tree import expected_tuples, join_tuples
 from contactpose.sim import grasps as simulate
 from contactpose.sim import objects
+from contactpose.stages import join_hypotheses
 from contactpose.types import PoseClass
 
 NOISE = dict(position_noise=0.0005, normal_noise_deg=1.0)
@@ -113,7 +115,7 @@ def test_region_member_choice_stops_at_the_search_deadline(monkeypatch):
     tol = Tolerance.from_noise(0.0005, 3.0)
     S = find_pairs(model, g.contacts, tol)
     whole = join_hypotheses(model, g.contacts, S, tol)
-    monkeypatch.setattr(importlib.import_module("contactpose.localize"), "POSE_CHUNK", 7)
+    monkeypatch.setattr(importlib.import_module("contactpose.stages"), "POSE_CHUNK", 7)
     assert len(whole) > 7 and np.array_equal(join_hypotheses(model, g.contacts, S, tol), whole)
     passed = Deadline(1e-9)
     time.sleep(1e-3)
@@ -200,7 +202,7 @@ def test_an_empty_answer_widens_the_tolerances_first(small_model):
     mesh; localize then widens the gates (1.5x, 2x) and says so, instead of no_hypothesis."""
     from scipy.spatial.transform import Rotation
 
-    from contactpose.localize import search
+    from contactpose.stages import search
 
     tol = Tolerance.from_noise(0.0005, 1.0)
     g = simulate.grasp(small_model, np.random.default_rng(0), n=4, **NOISE, noise="bounded")

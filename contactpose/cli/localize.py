@@ -13,8 +13,9 @@ from contactpose.cli.common import (
     warn_in_vain,
 )
 from contactpose.io import jsonfiles
-from contactpose.localize import DEFAULT_TIME_LIMIT, POOR_FIT_LISTED, localize
+from contactpose.localize import DEFAULT_TIME_LIMIT, localize
 from contactpose.options import KEEP, METHODS, ROBUST, SOLVERS
+from contactpose.stages import POOR_FIT_LISTED
 
 #: The robust kernel when --robust is not given (None in the parser, to tell a given value).
 DEFAULT_ROBUST = library_default(localize, "robust")

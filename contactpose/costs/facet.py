@@ -52,13 +52,7 @@ from numba import njit
 from contactpose.costs.frame import object_point
 from contactpose.costs.robust import KERNEL_CODE, kernel_width, robust_scale
 from contactpose.geometry.kernels import (  # 3-tuple kernels
-    _add,
-    _axpy,
-    _cross,
-    _dot,
     _point_triangle_d2,
-    _r_apply,
-    _rt_apply,
     _t,
     closest_point_triangle,
     point_triangle_distance,
@@ -77,14 +71,17 @@ def plane_residual(R, t, normal, offset, point, finger_normal):
     """One contact on one facet plane: (p, r_n, r_o), p and r_n 3-tuples. R (3, 3), t (3,);
     normal (3,) n_k, offset d_k; point x̃ (3,), finger_normal ñ (3,)."""
     p = object_point(R, t, point)
-    nrm = _t(normal)
-    return p, normal_residual(R, nrm, finger_normal), _dot(nrm, p) + offset
+    n0, n1, n2 = float(normal[0]), float(normal[1]), float(normal[2])
+    return p, normal_residual(R, (n0, n1, n2), finger_normal), n0 * p[0] + n1 * p[1] + n2 * p[2] + offset
 
 
 @njit(cache=True)
 def normal_residual(R, normal, finger_normal):
     """r_n = R n_k + ñ (3-tuple) of one contact: R (3, 3), normal a 3-tuple, finger_normal (3,)."""
-    return _add(_r_apply(R, normal), _t(finger_normal))
+    n0, n1, n2 = normal
+    return (R[0, 0] * n0 + R[0, 1] * n1 + R[0, 2] * n2 + float(finger_normal[0]),
+            R[1, 0] * n0 + R[1, 1] * n1 + R[1, 2] * n2 + float(finger_normal[1]),
+            R[2, 0] * n0 + R[2, 1] * n1 + R[2, 2] * n2 + float(finger_normal[2]))
 
 
 @njit(cache=True)
@@ -113,14 +110,19 @@ def plane_jacobian(J, row_n, row_o, R, normal, p, inv_sn, inv_sx):
 def normal_gradient(R, normal, r_n):
     """J_nᵀ r_n = n_k × Rᵀ r_n (3-tuple), the rotation gradient of ½|r_n|²; its Gauss–Newton
     matrix is J_nᵀ J_n = I - n_k n_kᵀ. normal : 3-tuple n_k; r_n : 3-tuple."""
-    return _cross(normal, _rt_apply(R, r_n))
+    n0, n1, n2 = normal
+    r0 = R[0, 0] * r_n[0] + R[1, 0] * r_n[1] + R[2, 0] * r_n[2]  # Rᵀ r_n
+    r1 = R[0, 1] * r_n[0] + R[1, 1] * r_n[1] + R[2, 1] * r_n[2]
+    r2 = R[0, 2] * r_n[0] + R[1, 2] * r_n[1] + R[2, 2] * r_n[2]
+    return (n1 * r2 - n2 * r1, n2 * r0 - n0 * r2, n0 * r1 - n1 * r0)
 
 
 @njit(cache=True)
 def in_plane(d, normal):
     """The part of the 3-tuple d in the plane of unit ``normal`` (3-tuple): d - (d·n) n, the
     lateral vector when d runs from the triangle's closest point to the contact."""
-    return _axpy(-_dot(d, normal), normal, d)
+    s = -(d[0] * normal[0] + d[1] * normal[1] + d[2] * normal[2])
+    return (d[0] + s * normal[0], d[1] + s * normal[1], d[2] + s * normal[2])
 
 
 # -------------------------------------------------------- many hypotheses ---

@@ -1,15 +1,15 @@
 """Contacts in the object frame, where every contact cost compares them with the model.
 
 Under a pose T_world_object = (R, t) a contact (world point x̃, finger normal ñ) lies at
-p = Rᵀ (x̃ - t) and measures the outward surface normal ν = -Rᵀ ñ.
+p = Rᵀ (x̃ - t) and measures the outward surface normal ν = -Rᵀ ñ (paper eq. (6): the measured
+plane moved into the object frame). The compiled forms write the products out, in the order
+geometry.kernels' 3-tuple helpers take them.
 """
 
 from __future__ import annotations
 
 import numpy as np
 from numba import njit
-
-from contactpose.geometry.kernels import _rt_apply, _sub, _t
 
 
 def object_frame(R, t, points, finger_normals=None):
@@ -28,11 +28,16 @@ def object_frame(R, t, points, finger_normals=None):
 @njit(cache=True)
 def object_point(R, t, point):
     """p = Rᵀ (x̃ - t) of one contact inside compiled kernels: R (3, 3), t (3,), point (3,) -> 3-tuple."""
-    return _rt_apply(R, _sub(_t(point), _t(t)))
+    d0, d1, d2 = float(point[0]) - float(t[0]), float(point[1]) - float(t[1]), float(point[2]) - float(t[2])
+    return (R[0, 0] * d0 + R[1, 0] * d1 + R[2, 0] * d2,
+            R[0, 1] * d0 + R[1, 1] * d1 + R[2, 1] * d2,
+            R[0, 2] * d0 + R[1, 2] * d1 + R[2, 2] * d2)
 
 
 @njit(cache=True)
 def object_normal(R, finger_normal):
     """ν = -Rᵀ ñ of one contact inside compiled kernels: R (3, 3), finger_normal (3,) -> 3-tuple."""
-    f = _rt_apply(R, _t(finger_normal))
-    return (-f[0], -f[1], -f[2])
+    f0, f1, f2 = float(finger_normal[0]), float(finger_normal[1]), float(finger_normal[2])
+    return (-(R[0, 0] * f0 + R[1, 0] * f1 + R[2, 0] * f2),
+            -(R[0, 1] * f0 + R[1, 1] * f1 + R[2, 1] * f2),
+            -(R[0, 2] * f0 + R[1, 2] * f1 + R[2, 2] * f2))

@@ -1,41 +1,32 @@
-"""Ranking: the one constructor of ranked hypotheses, and the polish of their poses.
+"""Ranking: the one constructor of ranked hypotheses, and their rows replaced by better ones.
 
 Every ranked set of hypotheses (:class:`~contactpose.types.HypothesisArrays`) is built by
 :func:`hypothesis_arrays`: the residuals of the facet model (costs.facet; eq. (7) from costs.paper) at each
 pose, the whitened χ² (research/errata.md, "Further decisions"), and the ranking cost (χ² for
-the default method, eq. (7) ℒ for the paper's). Fingers left unassigned (facet -1,
+the default method, eq. (7) ℒ for the paper's: contactpose.paper passes it). Fingers left unassigned (facet -1,
 ``max_outliers``) have NaN residuals and add OUTLIER_PENALTY to χ² and cost.
 """
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
-from contactpose.costs import paper
-from contactpose.costs.association import fitting_members
 from contactpose.costs.facet import contact_residuals, normal_residuals, whitened_cost
-from contactpose.options import fit_threshold, outlier_penalty
-from contactpose.scoring.infacet import polished_poses
+from contactpose.options import outlier_penalty
 from contactpose.solvers.closed_form import fit_poses
-from contactpose.solvers.surface import needs_surface, surface_fit
 from contactpose.types import HypothesisArrays
 
-#: localize(..., surface=True) fits this many of its best hypotheses on the surface (solvers.surface).
-SURFACE_REFINE = 8
-#: The default method moves the poses of at most this many hypotheses toward the least
-#: full χ² (:func:`polish`), those whose plane χ² is at least POLISH_GAIN below the best.
-POLISH = 256
-POLISH_GAIN = 0.5
 
-
-def hypothesis_arrays(model, contacts, facets, fit, tolerance, *, method="fast", paper_cost=None,
-                      cost=None, covariance=None, probability=None, order=True, surface=None):
+def hypothesis_arrays(model, contacts, facets, fit, tolerance, *, cost=None, offset=None, covariance=None,
+                      probability=None, order=True, surface=None):
     """Hypotheses with their residuals and costs, ranked best first (unless ``order=False``).
 
-    facets : (H, n) int (-1: unassigned); fit : PoseFit of the H poses; method : "fast"
-    (cost = χ², residual column 3 the point-to-plane offset) or "paper" (cost = eq. (7)
-    ℒ, ``paper_cost`` when LM computed it, column 3 the eq. (7) offset); cost : (H,) an
-    explicit ranking cost (the factor graph's -log evidence); covariance : (H, 6, 6) and
+    facets : (H, n) int (-1: unassigned); fit : PoseFit of the H poses; cost : (H,) the
+    ranking cost (default: χ²; the factor graph's -log evidence, eq. (7)'s ℒ for the paper's
+    method); offset : (H, n) residual column 3 instead of the point-to-plane offset (eq. (7)'s
+    offset, for the paper's method); covariance : (H, 6, 6) and
     probability : (H,) from the factor graph. residuals : (H, n, 5). surface : the contact
     model's landing (cone (H, n, 3) object-frame normals ν*, gap (H, n) distances |p − q|,
     solvers.surface): r_n compares the contact with ν* instead of its facet's normal, and
@@ -43,8 +34,7 @@ def hypothesis_arrays(model, contacts, facets, fit, tolerance, *, method="fast",
     """
     facets = np.asarray(facets, dtype=np.int64)
     ok, safe = facets >= 0, np.maximum(facets, 0)
-    offsets = model.planes.offsets[safe]
-    r_n, r_o, r_l = contact_residuals(fit.R, fit.t, model.planes.normals[safe], offsets,
+    r_n, r_o, r_l = contact_residuals(fit.R, fit.t, model.planes.normals[safe], model.planes.offsets[safe],
                                       model.triangles[safe], contacts.points, contacts.finger_normals)
     if surface is not None:
         r_n = normal_residuals(fit.R, np.nan_to_num(surface[0]), contacts.finger_normals)
@@ -52,19 +42,22 @@ def hypothesis_arrays(model, contacts, facets, fit, tolerance, *, method="fast",
     if not ok.all():
         r_n, r_o, r_l = r_n * ok[..., None], r_o * ok, r_l * ok
     chi2 = whitened_cost(r_n, r_o, r_l, tolerance.normal_noise, tolerance.position_noise) + outlier_penalty(facets)
-    offset_col = r_o
-    if method == "paper":
-        offset_col = paper.paper_offset_residuals(fit.t, contacts.points, contacts.finger_normals, offsets)
-        cost = paper.paper_cost(r_n, offset_col) if paper_cost is None else paper_cost
-    elif cost is None:
-        cost = chi2
-    residual = np.concatenate([r_n, offset_col[..., None], r_l[..., None]], axis=2)
+    residual = np.concatenate([r_n, (r_o if offset is None else offset)[..., None], r_l[..., None]], axis=2)
     if not ok.all():
         residual[~ok] = np.nan
-    arrays = HypothesisArrays(facets, fit.poses(), cost, chi2, residual, fit, covariance, probability)
-    if not order or np.all(cost[1:] >= cost[:-1]):
+    arrays = HypothesisArrays(facets, fit.poses(), chi2 if cost is None else cost, chi2, residual, fit, covariance,
+                              probability)
+    return ranked(arrays) if order else arrays
+
+
+def ranked(arrays, cost=None):
+    """The hypotheses in order of ``cost`` (H,) (default: their own), the first on a tie first;
+    ``cost`` becomes theirs."""
+    if cost is not None:
+        arrays = dataclasses.replace(arrays, cost=np.asarray(cost))
+    if np.all(arrays.cost[1:] >= arrays.cost[:-1]):
         return arrays
-    return arrays.take(np.argsort(cost, kind="stable"))
+    return arrays.take(np.argsort(arrays.cost, kind="stable"))
 
 
 def closed_form_arrays(model, contacts, facets, tolerance, *, prior=None, angle_tol=None):
@@ -96,62 +89,7 @@ def refined_arrays(model, contacts, refinement, fit, tolerance):
                              covariance=refinement.covariance, probability=refinement.probability, order=False)
 
 
-def polish(model, contacts, arrays, tolerance):
-    """The ranked hypotheses with the poses of those that could beat the best moved toward
-    the least full χ² (infacet.polished_poses), where that lowers it.
-
-    The closed form fits the planes only, the ranking cost includes the triangles: a
-    hypothesis whose plane χ² is at least POLISH_GAIN below the best full χ² (the best
-    itself, when a contact lies outside its triangle) is moved, up to POLISH of them, best
-    plane fit first. With patches, each moved contact gets the member facet nearest to it again.
-    """
-    lateral = arrays.residuals[..., 4]
-    if not lateral.any():  # every contact inside its triangle: the plane χ² is the full χ²
-        return arrays
-    plane = arrays.chi2 - np.sum(lateral**2, axis=1) / tolerance.position_noise**2
-    rows = np.flatnonzero(plane <= arrays.chi2.min() - POLISH_GAIN)
-    rows = rows[np.argsort(plane[rows], kind="stable")[:POLISH]]
-    if not len(rows):
-        return arrays
-    R, t = polished_poses(model, contacts, arrays, rows, tolerance, fit_threshold(contacts.n))
-    facets = arrays.facets[rows]
-    if model.patch_table is not None:
-        facets = fitting_members(model, contacts, np.ascontiguousarray(model.patches.labels[facets]), R, t, tolerance)
-    fit = arrays.fit.take(rows)
-    fit.R, fit.t = R, t
-    moved = hypothesis_arrays(model, contacts, facets, fit, tolerance, order=False)
-    better = moved.chi2 < arrays.chi2[rows]
-    if not better.any():
-        return arrays
-    return _replaced(arrays, rows[better], moved.take(np.flatnonzero(better)))
-
-
-def surface_refined(model, contacts, arrays, tolerance, k=SURFACE_REFINE):
-    """The ranked hypotheses with the best ``k`` determined ones posed on the surface
-    (solvers.surface.surface_fit) where the contact model differs from their facets and the
-    surface pose lowers χ²: their facets become those the contacts land on, their residuals
-    those of the contact model. Re-ranked."""
-    rows = np.flatnonzero(~arrays.fit.underdetermined)[:k]
-    fits = []
-    for r in rows:
-        R, t, f = arrays.fit.R[r], arrays.fit.t[r], arrays.facets[r]
-        if needs_surface(model, contacts, R, t, f, tolerance):
-            fits.append((r, surface_fit(model, contacts, R, t, f, tolerance)))
-    fits = [(r, got) for r, got in fits if got[5] + outlier_penalty(arrays.facets[r:r + 1])[0] < arrays.chi2[r]]
-    if not fits:
-        return arrays
-    rows = np.array([r for r, _ in fits])
-    fit = arrays.fit.take(rows)
-    fit.R, fit.t = np.stack([got[0] for _, got in fits]), np.stack([got[1] for _, got in fits])
-    facets = np.stack([np.where(arrays.facets[r] >= 0, got[2], -1) for r, got in fits])
-    surface = np.stack([got[3] for _, got in fits]), np.stack([got[4] for _, got in fits])
-    moved = hypothesis_arrays(model, contacts, facets, fit, tolerance, order=False, surface=surface)
-    arrays = _replaced(arrays, rows, moved)
-    _, first = np.unique(arrays.facets, axis=0, return_index=True)  # two fits may land alike: keep the better
-    return arrays if len(first) == len(arrays.cost) else arrays.take(np.sort(first))
-
-
-def _replaced(arrays, rows, moved):
+def replaced(arrays, rows, moved):
     """A copy of the ranked hypotheses with rows ``rows`` replaced by ``moved`` (their
     new facets, poses, costs and residuals), re-ranked."""
     arrays = arrays.take(np.arange(len(arrays.cost)))

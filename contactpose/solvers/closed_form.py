@@ -10,7 +10,8 @@ a determinant fix). Given R, the offset term is linear in t: linear least square
   decouple exactly, so this is the exact minimum of eq. (7).
 
 Directions the normals do not constrain are reported, and t is taken nearest a
-reference translation t0 along them.
+reference translation t0 along them. With a vision prior (:func:`prior_closed_form`) the
+prior's axes and translation join the observations, and the pose is always unique.
 """
 
 from __future__ import annotations
@@ -134,3 +135,31 @@ def _translations(R, world, lam, normals, offsets, points, finger_normals, t0, p
                 coef = (E[0, j] * resid[0] + E[1, j] * resid[1] + E[2, j] * resid[2]) / w[j]
                 for r in range(3):
                     t[h, r] += E[r, j] * coef
+
+
+def prior_closed_form(obj_normals, obj_offsets, points, finger_normals, tolerance, prior):
+    """Closed-form poses of H hypotheses with the vision prior as extra observations.
+
+    Rotation: Wahba on the whitened normals plus the prior's axes, Σ_i |R n_k + ñ_i|²/σ_n²
+    + |R - R_p|_F² / (2 σ_r²) (σ_r² the mean rotation variance of the prior). Translation:
+    exact least squares of Σ_i r_o²/σ_x² + (t - t_p)ᵀ Σ_t⁻¹ (t - t_p) given R, with the prior's
+    translation covariance rotated into the world. Always a unique pose (the prior fills any
+    direction the normals leave free), so it serves as LM start and for screening.
+
+    obj_normals : (H, n, 3), obj_offsets : (H, n), points, finger_normals : (n, 3)
+    -> R (H, 3, 3), t (H, 3)
+    """
+    h, n, _ = obj_normals.shape
+    cov = prior.covariance_matrix()
+    Rp, tp = prior.pose[:3, :3], prior.pose[:3, 3]
+    w_r = 1.0 / np.sqrt(2.0 * np.trace(cov[:3, :3]) / 3.0)
+    w_n = 1.0 / tolerance.normal_noise
+    obj = np.concatenate([obj_normals * w_n, np.broadcast_to(np.eye(3) * w_r, (h, 3, 3))], axis=1)
+    world = np.concatenate([-finger_normals * w_n, Rp.T * w_r], axis=0)  # rows R_p e_j
+    R = wahba(obj, world)
+    A = np.einsum("hij,hnj->hni", R, obj_normals)  # rows (R n_k)ᵀ
+    b = np.einsum("hni,ni->hn", A, points) + obj_offsets
+    info_t = np.linalg.inv(Rp @ cov[3:, 3:] @ Rp.T)
+    lhs = np.einsum("hni,hnj->hij", A, A) / tolerance.position_noise**2 + info_t
+    rhs = np.einsum("hni,hn->hi", A, b) / tolerance.position_noise**2 + info_t @ tp
+    return R, np.linalg.solve(lhs, rhs[..., None])[..., 0]

@@ -19,6 +19,7 @@ from scipy.optimize import least_squares
 from contactpose.costs.frame import object_frame
 from contactpose.costs.surface import SurfaceResiduals, face_costs, landing, surface_residuals
 from contactpose.geometry.se3 import retract
+from contactpose.options import outlier_penalty
 
 #: Residual evaluations of one stage of a surface fit.
 MAX_EVALUATIONS = 200
@@ -28,6 +29,8 @@ XTOL = 1e-12
 #: still falls by more than RESTART_TOL (relative).
 RESTARTS = 3
 RESTART_TOL = 1e-10
+#: localize(..., surface=True) fits this many of its best hypotheses on the surface.
+SURFACE_REFINE = 8
 #: needs_surface: the least cost χ²_S must be below the facets' by this much (relative).
 GATE_TOL = 1e-9
 #: The fit runs in stages with σ_x widened by these factors: with a wide σ_x an edge or vertex
@@ -96,3 +99,25 @@ def _surface_error(model, contacts, start, tolerance, key, this, values, H):
         H[0] = problem.jacobian(zero)
     start[:] = np.where(start >= 0, problem.landed.facet, -1)
     return e
+
+
+def surface_poses(model, contacts, arrays, tolerance, k=SURFACE_REFINE):
+    """The best ``k`` determined hypotheses of the ranked arrays (HypothesisArrays) posed on
+    the surface (:func:`surface_fit`), those where the contact model differs from their facets
+    (:func:`needs_surface`) and the surface pose lowers χ² (outlier penalty included): their
+    facets become those the contacts land on. -> (rows (K,) int, PoseFit of the surface poses,
+    facets (K, n) int, (cone directions ν* (K, n, 3), distances |p − q| (K, n))), K >= 0"""
+    rows = np.flatnonzero(~arrays.fit.underdetermined)[:k]
+    fits = []
+    for r in rows:
+        R, t, f = arrays.fit.R[r], arrays.fit.t[r], arrays.facets[r]
+        if needs_surface(model, contacts, R, t, f, tolerance):
+            fits.append((r, surface_fit(model, contacts, R, t, f, tolerance)))
+    fits = [(r, got) for r, got in fits if got[5] + outlier_penalty(arrays.facets[r:r + 1])[0] < arrays.chi2[r]]
+    rows = np.array([r for r, _ in fits], dtype=np.int64)
+    fit = arrays.fit.take(rows)
+    if not fits:
+        return rows, fit, arrays.facets[rows], None
+    fit.R, fit.t = np.stack([got[0] for _, got in fits]), np.stack([got[1] for _, got in fits])
+    facets = np.stack([np.where(arrays.facets[r] >= 0, got[2], -1) for r, got in fits])
+    return rows, fit, facets, (np.stack([got[3] for _, got in fits]), np.stack([got[4] for _, got in fits]))

@@ -46,8 +46,8 @@ from contactpose.errors import ContactPoseError, check_count
 from contactpose.geometry import se3
 from contactpose.model.memory import check_fits
 from contactpose.schema import json_array, json_number
+from contactpose.scoring import refine
 from contactpose.scoring.rank import closed_form_arrays
-from contactpose.solvers import factor_graph as fg
 
 log = logging.getLogger(__name__)
 
@@ -525,7 +525,7 @@ def refine_one(model, contacts, facets, tolerance, *, prior=None, robust="huber"
     """Factor-graph optimum, Laplace covariance and (possibly patch-moved) facets of one
     facet tuple. facets : (n,) int -> (4, 4), (6, 6), (n,) int"""
     arrays = closed_form_arrays(model, contacts, np.asarray(facets)[None], tolerance, angle_tol=tolerance.angle)
-    ref = fg.refine_hypotheses(model, contacts, arrays, tolerance, prior=prior, robust=robust, k=1,
+    ref = refine.refine_hypotheses(model, contacts, arrays, tolerance, prior=prior, robust=robust, k=1,
                                point_to_facet=point_to_facet)
     return ref.poses[0], ref.covariance[0], ref.facets[0]
 

@@ -13,9 +13,10 @@ from scipy.spatial.transform import Rotation
 from contactpose.costs import facet
 from contactpose.localize import localize
 from contactpose.options import fit_threshold
-from contactpose.scoring.infacet import lowest_chi2_bound, within_noise
+from contactpose.scoring.infacet import within_noise
 from contactpose.scoring.rank import closed_form_arrays
 from contactpose.sim import grasps as simulate
+from contactpose.solvers.polish import lowest_chi2_bound
 
 POSITION_NOISE, NORMAL_NOISE_DEG = 0.0005, 1.0
 

@@ -23,10 +23,12 @@ from contactpose.costs import smooth as smooth_model
 from contactpose.errors import ContactPoseError
 from contactpose.geometry.metrics import rotation_error_deg, translation_error
 from contactpose.localize import localize
+from contactpose.scoring import evidence, refine
 from contactpose.scoring.classes import pose_classes
 from contactpose.scoring.rank import closed_form_arrays
 from contactpose.scoring.status import ambiguous
 from contactpose.sim import grasps as simulate
+from contactpose.solvers import closed_form
 from contactpose.solvers import factor_graph as fg
 from contactpose.types import HypothesisArrays, PoseFit, PosePrior
 
@@ -258,7 +260,7 @@ def test_same_optimum_as_scipy_least_squares(rock):
     for _ in range(5):
         g = _grasp(rock, rng)
         arrays = closed_form_arrays(rock, g.contacts, g.facets[None], tol)
-        ref = fg.refine_hypotheses(rock, g.contacts, arrays, tol, robust="none", point_to_facet=False,
+        ref = refine.refine_hypotheses(rock, g.contacts, arrays, tol, robust="none", point_to_facet=False,
                                    params=_tight_params())
         normals = rock.planes.normals[g.facets][None]
         offsets = rock.planes.offsets[g.facets][None]
@@ -288,7 +290,7 @@ def test_covariance_is_inverse_gauss_newton_hessian(rock):
     for robust in ("none", "huber"):
         g = _grasp(rock, rng, n=5)
         arrays = closed_form_arrays(rock, g.contacts, g.facets[None], tol)
-        ref = fg.refine_hypotheses(rock, g.contacts, arrays, tol, robust=robust, params=_tight_params())
+        ref = refine.refine_hypotheses(rock, g.contacts, arrays, tol, robust=robust, params=_tight_params())
         cov = ref.covariance[0]
         assert np.allclose(cov, cov.T, rtol=0, atol=1e-12 * np.abs(cov).max())
         assert np.linalg.eigvalsh(cov).min() > 0
@@ -309,7 +311,7 @@ def test_prior_pulls_the_estimate(rock):
     covs = []
     for sig_deg, sig_t in [(90.0, 1.0), (1.0, 0.001), (0.01, 1e-5)]:
         prior = PosePrior(prior_pose, sigma_rot_deg=sig_deg, sigma_trans=sig_t)
-        ref = fg.refine_hypotheses(rock, g.contacts, arrays, tol, prior=prior, robust="none")
+        ref = refine.refine_hypotheses(rock, g.contacts, arrays, tol, prior=prior, robust="none")
         T = ref.poses[0]
         dist.append((rotation_error_deg(T, prior_pose), translation_error(T, prior_pose)))
         covs.append(ref.covariance[0])
@@ -329,7 +331,7 @@ def test_prior_picks_the_symmetric_twin_near_it(box):
         g = simulate.grasp(box, rng, n=4, position_noise=tol.position_noise, normal_noise_deg=1.0)
         arrays = localize(box, g.contacts, position_noise=tol.position_noise, normal_noise_deg=1.0).hypotheses.arrays
         prior = PosePrior(g.pose, sigma_rot_deg=10.0, sigma_trans=0.05 * box.diameter)
-        ref = fg.refine_hypotheses(box, g.contacts, arrays, tol, prior=prior)
+        ref = refine.refine_hypotheses(box, g.contacts, arrays, tol, prior=prior)
         hits += rotation_error_deg(ref.poses[0], g.pose) < 5.0
         assert ref.determined.all()  # the prior determines every hypothesis
     assert hits == 5
@@ -341,11 +343,11 @@ def test_prior_closed_form_is_exact_on_noise_free_contacts(box):
     g = simulate.grasp(box, rng, n=4)
     prior = PosePrior(g.pose, sigma_rot_deg=10.0, sigma_trans=0.01)
     normals = box.planes.normals[g.facets][None]
-    R, t = fg.prior_closed_form(normals, box.planes.offsets[g.facets][None], g.contacts.points,
+    R, t = closed_form.prior_closed_form(normals, box.planes.offsets[g.facets][None], g.contacts.points,
                                 g.contacts.finger_normals, tol, prior)
     np.testing.assert_allclose(R[0], g.pose[:3, :3], atol=1e-9)
     np.testing.assert_allclose(t[0], g.pose[:3, 3], atol=1e-9)
-    assert fg.prior_mahalanobis2(R, t, prior)[0] == pytest.approx(0.0, abs=1e-12)
+    assert evidence.prior_mahalanobis2(R, t, prior)[0] == pytest.approx(0.0, abs=1e-12)
 
 
 # ------------------------------------------------------------------- robust ---
@@ -358,14 +360,14 @@ def test_robust_kernel_limits_one_displaced_contact(rock):
     shift = {k: [] for k in KERNELS}
     for _ in range(5):
         g = _grasp(rock, rng, n=5)
-        clean = fg.refine_hypotheses(rock, g.contacts, closed_form_arrays(rock, g.contacts, g.facets[None], tol),
+        clean = refine.refine_hypotheses(rock, g.contacts, closed_form_arrays(rock, g.contacts, g.facets[None], tol),
                                      tol, robust="none").poses[0]
         points = g.contacts.points.copy()
         points[0] += 0.1 * rock.diameter * g.contacts.object_normals[0]
         bad = Contacts(points, finger_normals=g.contacts.finger_normals)
         arrays = closed_form_arrays(rock, bad, g.facets[None], tol)
         for robust in KERNELS:
-            T = fg.refine_hypotheses(rock, bad, arrays, tol, robust=robust).poses[0]
+            T = refine.refine_hypotheses(rock, bad, arrays, tol, robust=robust).poses[0]
             shift[robust].append(translation_error(T, clean))
     none, huber, cauchy = (np.median(shift[k]) for k in KERNELS)
     assert huber < 0.6 * none and cauchy < 0.5 * huber
@@ -384,7 +386,7 @@ def test_probabilities_and_evidence(rock):
         if len(arrays.cost) < 3:
             continue
         seen += 1
-        ref = fg.refine_hypotheses(rock, g.contacts, arrays, tol, k=5)
+        ref = refine.refine_hypotheses(rock, g.contacts, arrays, tol, k=5)
         assert len(ref) == min(5, len(arrays.cost))
         assert ref.probability.sum() == pytest.approx(1.0, abs=1e-12)
         assert np.all(np.diff(ref.probability) <= 1e-15)
@@ -401,10 +403,10 @@ def test_underdetermined_hypothesis_gets_no_probability(box):
     top = np.flatnonzero(box.planes.normals[:, 2] > 0.99)
     g = simulate.grasp(box, rng, n=4, facets=top[:4])
     arrays = closed_form_arrays(box, g.contacts, g.facets[None], tol)
-    ref = fg.refine_hypotheses(box, g.contacts, arrays, tol)
+    ref = refine.refine_hypotheses(box, g.contacts, arrays, tol)
     assert not ref.determined[0] and np.isnan(ref.covariance[0]).all() and np.isnan(ref.probability[0])
     prior = PosePrior(g.pose, sigma_rot_deg=10.0, sigma_trans=0.01)
-    ref = fg.refine_hypotheses(box, g.contacts, arrays, tol, prior=prior)
+    ref = refine.refine_hypotheses(box, g.contacts, arrays, tol, prior=prior)
     assert ref.determined[0] and ref.probability[0] == 1.0
 
 
@@ -424,7 +426,7 @@ def test_covariance_leaves_out_the_point_to_facet_hinge(rock):
     points[0] = tri.mean(axis=0) + (far + 0.01 * rock.diameter) * away / np.linalg.norm(away)
     contacts = Contacts(points, g.contacts.finger_normals)
     arrays = closed_form_arrays(rock, contacts, g.facets[None], tol)
-    ref = fg.refine_hypotheses(rock, contacts, arrays, tol, robust="none", k=1)
+    ref = refine.refine_hypotheses(rock, contacts, arrays, tol, robust="none", k=1)
     T = ref.poses[0]
     data = facet.pack_contacts(rock, contacts, ref.facets[0])
     e_full, _ = facet.factor_rows(T, data, facet.kernel_params(tol, "none"), jacobian=False)
@@ -465,7 +467,7 @@ def test_lateral_residual_does_not_make_a_pose_family_determined(box):
     contacts = Contacts(points, g.contacts.finger_normals)
     arrays = closed_form_arrays(box, contacts, g.facets[None], tol)
     assert arrays.fit.underdetermined[0]
-    ref = fg.refine_hypotheses(box, contacts, arrays, tol)
+    ref = refine.refine_hypotheses(box, contacts, arrays, tol)
     assert not ref.determined[0] and np.isnan(ref.covariance[0]).all() and np.isnan(ref.probability[0])
     r = localize(box, contacts, position_noise=tol.position_noise, normal_noise_deg=1.0, solver="factor-graph")
     assert r.best.underdetermined and np.isnan(r.best.covariance).all()  # status: poor_fit (contacts off the face)
@@ -499,14 +501,14 @@ def test_bad_input_raises(rock):
     g = _grasp(rock, rng)
     arrays = closed_form_arrays(rock, g.contacts, g.facets[None], tol)
     with pytest.raises(ContactPoseError, match="robust"):
-        fg.refine_hypotheses(rock, g.contacts, arrays, tol, robust="tukey")
+        refine.refine_hypotheses(rock, g.contacts, arrays, tol, robust="tukey")
     with pytest.raises(ContactPoseError, match="k must"):
-        fg.refine_hypotheses(rock, g.contacts, arrays, tol, k=-1)
+        refine.refine_hypotheses(rock, g.contacts, arrays, tol, k=-1)
     with pytest.raises(ContactPoseError, match="prior"):
-        fg.refine_hypotheses(rock, g.contacts, arrays, tol, prior=np.eye(4))
+        refine.refine_hypotheses(rock, g.contacts, arrays, tol, prior=np.eye(4))
     five = _grasp(rock, rng, n=5)
     with pytest.raises(ContactPoseError, match=r"\(H, 5\)"):
-        fg.refine_hypotheses(rock, five.contacts, arrays, tol)
+        refine.refine_hypotheses(rock, five.contacts, arrays, tol)
 
 
 # -------------------------------------------- selection, patches, two-stage ---
@@ -521,7 +523,7 @@ def test_prior_gate_keeps_consistent_rotations(box):
         if len(arrays.cost) == 0:
             continue
         prior = PosePrior(g.pose, sigma_rot_deg=10.0, sigma_trans=0.05 * box.diameter)
-        keep = fg.prior_gate(box, arrays, tol, prior)
+        keep = evidence.prior_gate(box, arrays, tol, prior)
         err = rotation_error_deg(arrays.poses, g.pose)
         normals = box.planes.normals[arrays.facets]
         info_min = np.linalg.eigvalsh(4 * np.eye(3) - np.einsum("hni,hnj->hij", normals, normals))[:, 0]
@@ -545,7 +547,7 @@ def test_facets_follow_the_pose_within_a_patch(box):
     assert not np.array_equal(wrong, g.facets)
     arrays = closed_form_arrays(box, g.contacts, wrong[None], tol)
     prior = PosePrior(g.pose, sigma_rot_deg=10.0, sigma_trans=0.05 * box.diameter)
-    ref = fg.refine_hypotheses(box, g.contacts, arrays, tol, prior=prior)
+    ref = refine.refine_hypotheses(box, g.contacts, arrays, tol, prior=prior)
     np.testing.assert_array_equal(ref.facets[0], g.facets)
     assert rotation_error_deg(ref.poses[0], g.pose) < 1.0 and ref.contact_chi2[0] < 1.0
 
@@ -585,8 +587,8 @@ def test_screen_and_polish_match_a_tight_single_pass(rock):
     for _ in range(3):
         g = simulate.grasp(rock, rng, n=4, position_noise=tol.position_noise, normal_noise_deg=1.0)
         arrays = localize(rock, g.contacts, position_noise=tol.position_noise, normal_noise_deg=1.0).hypotheses.arrays
-        fast = fg.refine_hypotheses(rock, g.contacts, arrays, tol)
-        tight = fg.refine_hypotheses(rock, g.contacts, arrays, tol, params=_tight_params())
+        fast = refine.refine_hypotheses(rock, g.contacts, arrays, tol)
+        tight = refine.refine_hypotheses(rock, g.contacts, arrays, tol, params=_tight_params())
         assert fast.index[0] == tight.index[0]
         xi = gtsam.Pose3(tight.poses[0]).localCoordinates(gtsam.Pose3(fast.poses[0]))
         assert xi @ np.linalg.solve(tight.covariance[0], xi) < 0.05**2  # within 0.05 σ
@@ -607,8 +609,8 @@ def test_unassigned_finger_equals_refining_the_other_contacts(rock):
         keep = np.array([0, 1, 3, 4])
         sub = g.contacts.permuted(keep)
         sub_arrays = closed_form_arrays(rock, sub, g.facets[keep][None], tol)
-        alone = fg.refine_hypotheses(rock, sub, sub_arrays, tol, robust=robust, params=_tight_params())
-        wild = fg.refine_hypotheses(rock, g.contacts, sub_arrays.widened(keep, 5, OUTLIER_PENALTY), tol,
+        alone = refine.refine_hypotheses(rock, sub, sub_arrays, tol, robust=robust, params=_tight_params())
+        wild = refine.refine_hypotheses(rock, g.contacts, sub_arrays.widened(keep, 5, OUTLIER_PENALTY), tol,
                                     robust=robust, params=_tight_params())
         np.testing.assert_array_equal(wild.facets[0], [*g.facets[:2], -1, *g.facets[3:]])
         np.testing.assert_allclose(wild.poses[0], alone.poses[0], atol=1e-9)
@@ -660,7 +662,7 @@ def test_posterior_along_a_free_direction_is_the_prior(box):
     prior_pose = g.pose.copy()
     prior_pose[:3, 3] += offset * g.pose[:3, 2]  # along the free (body z) axis
     prior = PosePrior(prior_pose, sigma_rot_deg=10.0, sigma_trans=sigma_t)
-    ref = fg.refine_hypotheses(box, g.contacts, arrays, tol, prior=prior, robust="none", params=_tight_params())
+    ref = refine.refine_hypotheses(box, g.contacts, arrays, tol, prior=prior, robust="none", params=_tight_params())
     T = ref.poses[0]
     assert (T[:3, 3] - g.pose[:3, 3]) @ g.pose[:3, 2] == pytest.approx(offset, rel=1e-6)
     assert ref.covariance[0][5, 5] == pytest.approx(sigma_t**2, rel=1e-6)  # tangent z = body z
@@ -682,9 +684,9 @@ def test_prior_rescues_a_search_that_lost_the_true_tuple(rock, monkeypatch):
     plain = localize(rock, contacts, position_noise=sx, solver="factor-graph")
     assert all(rotation_error_deg(h.pose, g.pose) > 10.0 for h in plain.hypotheses)  # the true tuple is lost
     prior = PosePrior(g.pose, sigma_rot_deg=2.0, sigma_trans=0.01 * rock.diameter)
-    stages = [(fg.RESCUE_WIDEN, r"searched again with 2x the pair tolerances$"), (1.0, "best-fitting facet")]
+    stages = [(refine.RESCUE_WIDEN, r"searched again with 2x the pair tolerances$"), (1.0, "best-fitting facet")]
     for widen, message in stages:
-        monkeypatch.setattr(fg, "RESCUE_WIDEN", widen)
+        monkeypatch.setattr(refine, "RESCUE_WIDEN", widen)
         with pytest.warns(UserWarning, match=message):
             r = localize(rock, contacts, position_noise=sx, prior=prior, solver="factor-graph")
         np.testing.assert_array_equal(r.best.facets, g.facets)

@@ -174,7 +174,7 @@ def test_static_touches_are_one_pose(rock_model):
     data = facet.pack_contacts(rock, g.contacts, g.facets)
     graph.add(fg.contact_factor(data, facet.kernel_params(tol, "huber")))
     spread.add(fg.contact_factor(data, facet.kernel_params(tol, "huber", point_to_facet=False)))
-    pose, _, cov, _ = fg._optimize(graph, g.pose, fg.lm_params(max_iterations=100, relative_tol=1e-12,
+    pose, _, cov, _ = fg.optimize(graph, g.pose, fg.lm_params(max_iterations=100, relative_tol=1e-12,
                                                                absolute_tol=1e-14), spread)
     np.testing.assert_allclose(track.relinearize()[0], pose, atol=1e-9)
     np.testing.assert_allclose(track.covariance, cov, rtol=1e-6, atol=1e-18)

@@ -17,6 +17,7 @@ from contactpose.errors import ContactPoseError
 from contactpose.geometry import se3
 from contactpose.localize import localize
 from contactpose.options import ROBUST
+from contactpose.scoring import refine
 from contactpose.scoring.rank import closed_form_arrays
 from contactpose.sim import grasps as simulate
 from contactpose.solvers import factor_graph as fg
@@ -38,7 +39,7 @@ def _grasp(model, seed, n=4, where="area"):
 
 def _refined(model, g, tol, **kw):
     arrays = closed_form_arrays(model, g.contacts, g.facets[None], tol)
-    return fg.refine_hypotheses(model, g.contacts, arrays, tol, k=1, **kw)
+    return refine.refine_hypotheses(model, g.contacts, arrays, tol, k=1, **kw)
 
 
 # ---------------------------------------------------------- log-posterior ---
@@ -240,7 +241,7 @@ def test_mixture_splits_samples_by_probability(banana_model):
     g, tol = _grasp(banana_model, 9)
     result = localize(banana_model, g.contacts, position_noise=tol.position_noise,
                       normal_noise_deg=np.degrees(tol.normal_noise))
-    ref = fg.refine_hypotheses(banana_model, g.contacts, result.hypotheses.arrays, tol, k=3)
+    ref = refine.refine_hypotheses(banana_model, g.contacts, result.hypotheses.arrays, tol, k=3)
     ok = ref.determined
     m = unc.sample_mixture(banana_model, g.contacts, ref.facets[ok], ref.poses[ok], ref.covariance[ok],
                            ref.probability[ok], tol, n_samples=400, rng=np.random.default_rng(1), progress=False)

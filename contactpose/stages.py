@@ -1,0 +1,346 @@
+"""The stages of the online phase (§3.2, §4), each a public function of arrays in, arrays out.
+
+contacts -> search.grow.grow_tree (S_ij, eq. 5, and the tree T, §3.2; :func:`join_hypotheses`
+over given S_ij) -> :func:`pose_hypotheses` (a pose per hypothesis) -> :func:`rank_hypotheses` (residuals,
+χ², order) -> :func:`polish_hypotheses` (the poses moved onto the triangles)
+-> :func:`distinct` (one hypothesis per distinct pose) -> :func:`surface_hypotheses` and
+:func:`refine_hypotheses` (optional) -> :func:`classify` (pose classes and status)
+-> :func:`listed` (what keep="fitting" lists).
+
+:func:`find_hypotheses` runs the search stages for the default method, with the finger
+subsets of ``max_outliers`` and the widened tolerances of an empty answer; localize composes
+it with the rest. The paper's method takes the stages it shares with ours from here and its
+own choices from contactpose.paper. Experiments and users may call the stages themselves.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+import warnings
+from itertools import combinations
+
+import numpy as np
+
+from contactpose.costs.association import fitting_members, nearest_fit_facets
+from contactpose.options import DEFAULT_REFINE, OUTLIER_PENALTY, fit_threshold
+from contactpose.progress import Deadline
+from contactpose.scoring import evidence, refine
+from contactpose.scoring import rank as ranking
+from contactpose.scoring.classes import MAX_CLASS_HYPOTHESES, distinct_poses, pose_classes
+from contactpose.scoring.freespace import free_space_violations
+from contactpose.scoring.infacet import within_noise
+from contactpose.scoring.status import status as status_of
+from contactpose.search.grow import grow_tree, triple_test, warn_explosion
+from contactpose.search.tree import join_tuples
+from contactpose.solvers.closed_form import fit_poses
+from contactpose.solvers.lm import fit_lm_all
+from contactpose.solvers.polish import polished
+from contactpose.solvers.surface import surface_poses
+
+#: When nothing matches, the pair tolerances are widened by these factors in turn.
+WIDEN_SCHEDULE = (1.5, 2.0)
+#: Share of the time left that the tree may take; the poses and ranking get the rest.
+TREE_SHARE = 0.25
+#: Seconds the distinct-pose grouping may always take, even once the time limit has passed;
+#: past both, the rows not yet grouped are listed as they are (status "time_limit").
+GROUPING_GRACE = 2.0
+#: Hypotheses posed and ranked at a time (the grain of their deadline checks).
+POSE_CHUNK = 65_536
+#: With keep="fitting", a search none of whose hypotheses fits within noise lists its best this many.
+POOR_FIT_LISTED = 10
+#: The search's stage times, in seconds, as every Result's timing starts.
+SEARCH_STAGES = ("pairs", "tree", "pose", "rank")
+
+__all__ = ["POOR_FIT_LISTED", "SEARCH_STAGES", "classify", "distinct", "drop_blocked", "find_hypotheses",
+           "join_hypotheses", "listed", "listed_rows", "polish_hypotheses", "pose_hypotheses", "rank_hypotheses",
+           "refine_hypotheses", "search", "surface_hypotheses"]
+
+
+# ------------------------------------------------------------------ search ---
+
+def find_hypotheses(model, contacts, tolerance, *, solver="closed-form", prior=None, max_outliers=0, deadline=None,
+                    progress=None, tree=None):
+    """Every hypothesis of the default method: :func:`search` of all contacts, then of every
+    subset that leaves 1..max_outliers fingers unassigned (facet -1, OUTLIER_PENALTY each, their
+    contacts out of the pose), and, when nothing matched, searches at widened tolerances
+    (:func:`_widen`); solver : as for :func:`pose_hypotheses`. -> (HypothesisArrays ranked, seconds per stage (SEARCH_STAGES), the
+    SearchTree of all contacts or None, a note on the widening or "")"""
+    deadline = deadline or Deadline()
+    arrays, timing, grown = search(model, contacts, tolerance, solver=solver, prior=prior, deadline=deadline,
+                                   progress=progress, tree=tree)
+    for dropped in _outlier_sets(contacts.n, max_outliers):
+        fingers = np.setdiff1d(np.arange(contacts.n), dropped)
+        sub, sub_timing, _ = search(model, contacts.permuted(fingers), tolerance, solver=solver, prior=prior,
+                                    deadline=deadline, progress=progress)
+        arrays = arrays.merged(sub.widened(fingers, contacts.n, len(dropped) * OUTLIER_PENALTY))
+        timing = {k: timing[k] + sub_timing[k] for k in timing}
+    widened = ""
+    if len(arrays.cost) == 0:
+        arrays, widened = _widen(model, contacts, arrays, tolerance, solver, prior, deadline, progress, timing)
+    return arrays, timing, grown, widened
+
+
+def search(model, contacts, tolerance, *, solver="closed-form", prior=None, deadline=None, progress=None, tree=None):
+    """The default method's stages up to the ranking: S_ij -> tree -> poses -> ranked and
+    polished HypothesisArrays.
+
+    deadline : a progress.Deadline. The tree may spend TREE_SHARE of what is left of it;
+    the poses and the ranking then run POSE_CHUNK hypotheses at a time until it passes
+    (``deadline.hit`` tells whether anything stopped early). solver : as for
+    :func:`pose_hypotheses`. tree : a SearchTree of the first contacts to extend
+    (search.grow.grow_tree). Returns (HypothesisArrays, seconds per stage: "pairs", "tree",
+    "pose", "rank", the SearchTree of these contacts, or None when the deadline cut the tree
+    short).
+    """
+    deadline = deadline or Deadline()
+    tree_deadline = Deadline(None if deadline.seconds is None else TREE_SHARE * deadline.remaining())
+    grown, timing = grow_tree(model, contacts, tolerance, tree=tree, deadline=tree_deadline, progress=progress)
+    deadline.hit |= tree_deadline.hit
+    start = time.perf_counter()
+    facets = grown.tuples
+    if grown.units == "patches":
+        facets = _members_in_chunks(model, contacts, facets, tolerance, prior, deadline)
+    timing.update(tree=timing["tree"] + time.perf_counter() - start, pose=0.0, rank=0.0)
+    arrays = None
+    for lo in range(0, max(len(facets), 1), POSE_CHUNK):
+        if lo and deadline.passed:
+            break
+        part = _pose_and_rank(model, contacts, facets[lo:lo + POSE_CHUNK], tolerance, solver, prior, deadline,
+                              progress, timing)
+        arrays = part if arrays is None else arrays.merged(part)
+    start = time.perf_counter()
+    arrays = polish_hypotheses(model, contacts, arrays, tolerance)
+    timing["pose"] += time.perf_counter() - start
+    return arrays, timing, None if tree_deadline.hit else grown
+
+
+def join_hypotheses(model, contacts, S, tolerance, *, prior=None, deadline=None, progress=None,
+                    members_deadline=None):
+    """The tree T over S_ij: facet tuples (H, n) int, one finger per column, joined level by
+    level with the handedness test on triples (on patches, one tuple per patch tuple: see
+    :func:`_members_in_chunks`). deadline : the tree's progress.Deadline; members_deadline :
+    the one the patch tuples' member choice checks between chunks of POSE_CHUNK (default:
+    deadline). Warns when the pair sets predict more than EXPLOSION_TUPLES tuples
+    (search.tree.expected_tuples)."""
+    patches = model.patch_table is not None
+    triple = triple_test(model, contacts, tolerance, patches)
+    warn_explosion(S, contacts.n, tolerance, model, triple)
+    tuples = join_tuples(S, contacts.n, triple, deadline=deadline, progress=progress)
+    if not patches:
+        return tuples
+    return _members_in_chunks(model, contacts, tuples, tolerance, prior,
+                              deadline if members_deadline is None else members_deadline)
+
+
+def pose_hypotheses(model, contacts, facets, tolerance, *, cost="invariant", solver="closed-form", prior=None,
+                    deadline=None, progress=None):
+    """A pose per hypothesis: the closed form (solvers.closed_form) of the origin-invariant
+    cost (``cost="invariant"``) or of eq. (7) (``"paper"``), a translation family's member
+    nearest the prior's translation; or, with solver="lm", Levenberg–Marquardt on eq. (7) from
+    the prior (or the identity), as §4 does (solvers.lm).
+
+    facets : (H, n) int -> (PoseFit, eq. (7) cost (H,) from LM or None). LM stops at a passed
+    deadline: then the fit and cost cover the first hypotheses only.
+    """
+    normals, offsets = model.planes.normals[facets], model.planes.offsets[facets]
+    t0 = None if prior is None else np.broadcast_to(prior.pose[:3, 3], (len(facets), 3))
+    fit = fit_poses(normals, offsets, contacts.points, contacts.finger_normals, cost=cost,
+                    angle_tol=tolerance.normal_noise, t0=t0, centroids=model.centroids[facets])
+    if solver == "closed-form":
+        return fit, None
+    T, lm_cost, _ = fit_lm_all(normals, offsets, contacts.points, contacts.finger_normals,
+                               np.eye(4) if prior is None else prior.pose, deadline=deadline, progress=progress)
+    fit = fit.take(slice(0, len(T)))
+    fit.R, fit.t = T[:, :3, :3], T[:, :3, 3]
+    return fit, lm_cost
+
+
+#: The ranking stage (scoring.rank.hypothesis_arrays), under its pipeline name.
+rank_hypotheses = ranking.hypothesis_arrays
+
+
+def polish_hypotheses(model, contacts, arrays, tolerance):
+    """The ranked hypotheses with the poses of those that could beat the best moved toward
+    the least full χ² (solvers.polish.polished), where that lowers it; re-ranked."""
+    rows, fit, facets = polished(model, contacts, arrays, tolerance)
+    if not len(rows):
+        return arrays
+    moved = ranking.hypothesis_arrays(model, contacts, facets, fit, tolerance, order=False)
+    better = moved.chi2 < arrays.chi2[rows]
+    if not better.any():
+        return arrays
+    return ranking.replaced(arrays, rows[better], moved.take(np.flatnonzero(better)))
+
+
+# ------------------------------------------------------------ after search ---
+
+def drop_blocked(model, contacts, arrays, finger_radius):
+    """The hypotheses but those whose (determined) pose puts a contact where no finger of
+    ``finger_radius`` fits (scoring.freespace)."""
+    bad = free_space_violations(model, arrays.facets, arrays.poses, contacts, finger_radius)
+    return arrays.take(np.flatnonzero(~(bad & ~arrays.fit.underdetermined)))
+
+
+def distinct(model, arrays, tolerance, deadline):
+    """One hypothesis per distinct pose (scoring.classes.distinct_poses), within what is left
+    of the deadline (a progress.Deadline), or GROUPING_GRACE seconds if more; a cut there
+    counts as the deadline's."""
+    grouping = Deadline(None if deadline.seconds is None else max(deadline.remaining(), GROUPING_GRACE))
+    arrays = distinct_poses(model, arrays, tolerance.position_noise, grouping)[0]
+    deadline.hit |= grouping.hit
+    return arrays
+
+
+def surface_hypotheses(model, contacts, arrays, tolerance, deadline):
+    """The best hypotheses posed on the surface contact model where it fits better than their
+    facets (solvers.surface.surface_poses): their facets those the contacts land on, their
+    residuals the contact model's; re-ranked, then one per distinct pose (:func:`distinct`)."""
+    rows, fit, facets, landed = surface_poses(model, contacts, arrays, tolerance)
+    if len(rows):
+        moved = ranking.hypothesis_arrays(model, contacts, facets, fit, tolerance, order=False, surface=landed)
+        arrays = ranking.replaced(arrays, rows, moved)
+        _, first = np.unique(arrays.facets, axis=0, return_index=True)  # two fits may land alike: keep the better
+        if len(first) != len(arrays.cost):
+            arrays = arrays.take(np.sort(first))
+    return distinct(model, arrays, tolerance, deadline)
+
+
+def refine_hypotheses(model, contacts, arrays, tolerance, *, prior=None, robust="huber", k=DEFAULT_REFINE):
+    """The factor graph's refinement of the best k hypotheses (scoring.refine), as ranked
+    HypothesisArrays (by Laplace evidence), with covariance and probability. Unassigned
+    fingers (facet -1, max_outliers) have no contact residual.
+
+    With a prior, when no hypothesis both agrees with it and, refined, fits the contacts
+    within noise (χ² <= fit_threshold), the search runs again at RESCUE_WIDEN times the pair
+    tolerances and, if still none agrees with the prior, each contact also gets its
+    best-fitting facet under the prior pose; all of these are refined together, and a
+    warning says what was done (research/factor_graph.md, "Rescue"). Returns (arrays, that
+    note or "")."""
+
+    def refined(a):
+        if len(a.cost) == 0:
+            return a, 0
+        ref = refine.refine_hypotheses(model, contacts, a, tolerance, prior=prior, robust=robust, k=k)
+        return ranking.refined_arrays(model, contacts, ref, a.fit.take(ref.index), tolerance), ref.agreeing
+
+    out, agreeing = refined(arrays)
+    if prior is None or (agreeing > 0 and out.chi2[0] <= fit_threshold(contacts.n)):
+        return out, ""
+    wide = tolerance.widened(refine.RESCUE_WIDEN)
+    arrays = arrays.merged(search(model, contacts, wide, prior=prior)[0])
+    arrays = arrays.take(np.sort(np.unique(arrays.facets, axis=0, return_index=True)[1]))  # found twice
+    how = f"searched again with {refine.RESCUE_WIDEN:g}x the pair tolerances"
+    if not evidence.agrees_with_prior(model, arrays, tolerance, prior):
+        facets = nearest_fit_facets(model, contacts, prior.pose, tolerance)
+        arrays = arrays.merged(ranking.closed_form_arrays(model, contacts, facets[None], tolerance,
+                                                          angle_tol=tolerance.angle))
+        how += " and added each contact's best-fitting facet under the prior pose"
+    note = f"no hypothesis both agreed with the vision prior and fit within noise: {how}"
+    warnings.warn(note, stacklevel=3)
+    return refined(arrays)[0], note
+
+
+def classify(model, contacts, arrays, tolerance, *, fits=None, deadline=None, notes=()):
+    """Pose classes of the hypotheses that fit within noise, and the status with its hint
+    (scoring.status; deadline : the search's progress.Deadline: once passed, the fit test
+    stops and the status is "time_limit").
+
+    fits : (H,) bool, the hypotheses that fit; default: the in-facet lower bound on the best
+    χ² (scoring.infacet) decides. notes : what earlier stages did, joined to the hint.
+    Returns (list of PoseClass, status, hint).
+    """
+    if fits is None:
+        fits = within_noise(model, contacts, arrays, tolerance, fit_threshold(contacts.n), enough=MAX_CLASS_HYPOTHESES,
+                            deadline=deadline)
+    classes = pose_classes(model, arrays, contacts.n, fits)
+    truncated = deadline is not None and deadline.hit
+    status, hint = status_of(model, contacts, arrays, classes, tolerance, fits, truncated)
+    for note in notes:
+        if note:
+            hint = f"{hint}; {note}" if hint else note
+    return classes, status, hint
+
+
+def listed_rows(classes, count):
+    """Ranks that keep="fitting" lists of ``count`` ranked distinct poses with these pose
+    classes: the best and the classes' members (those that fit within noise), in rank order;
+    the best POOR_FIT_LISTED when no class holds any.  ->  (K,) int"""
+    if not classes:
+        return np.arange(min(POOR_FIT_LISTED, count))
+    return np.union1d([0], np.concatenate([c.members for c in classes]))
+
+
+def listed(arrays, classes):
+    """The hypotheses keep="fitting" lists (:func:`listed_rows`), with the classes' ranks
+    moved to that list. -> (HypothesisArrays, classes)"""
+    rows = listed_rows(classes, len(arrays.cost))
+    moved = [dataclasses.replace(c, members=np.searchsorted(rows, c.members), best=int(np.searchsorted(rows, c.best)))
+             for c in classes]
+    return arrays.take(rows), moved
+
+
+# ----------------------------------------------------------------- helpers ---
+
+def _pose_and_rank(model, contacts, facets, tolerance, solver, prior, deadline, progress, timing):
+    """pose_hypotheses then rank_hypotheses of some tuples, adding their seconds to timing."""
+    start = time.perf_counter()
+    fit, _ = pose_hypotheses(model, contacts, facets, tolerance, solver=solver, prior=prior, deadline=deadline,
+                             progress=progress)
+    facets = facets[:len(fit.t)]  # LM stops at the deadline
+    posed = time.perf_counter()
+    arrays = ranking.hypothesis_arrays(model, contacts, facets, fit, tolerance)
+    timing["pose"] += posed - start
+    timing["rank"] += time.perf_counter() - posed
+    return arrays
+
+
+def _members_in_chunks(model, contacts, tuples, tolerance, prior, members_deadline=None):
+    """Facet tuples for patch tuples (H, n), one each, their members chosen POSE_CHUNK
+    tuples at a time until members_deadline passes (:func:`_member_facets`)."""
+    parts = []
+    for lo in range(0, max(len(tuples), 1), POSE_CHUNK):
+        if lo and members_deadline is not None and members_deadline.passed:
+            break
+        parts.append(_member_facets(model, contacts, tuples[lo:lo + POSE_CHUNK], tolerance, prior))
+    return np.concatenate(parts)
+
+
+def _member_facets(model, contacts, tuples, tolerance, prior):
+    """Pose patch tuples (H, n) on the patch planes, give each contact the member facet that
+    fits it best (nearest, with the normal it carries: costs.association.fitting_members),
+    re-pose on those facets and take the members again (research/design.md). -> (H, n) int facets"""
+    patches = model.patches
+    t0 = None if prior is None else np.broadcast_to(prior.pose[:3, 3], (len(tuples), 3))
+    normals, offsets, centres = patches.normals[tuples], patches.offsets[tuples], patches.centres[tuples]
+    for _ in range(2):
+        fit = fit_poses(normals, offsets, contacts.points, contacts.finger_normals,
+                        angle_tol=tolerance.normal_noise, t0=t0, centroids=centres)
+        facets = fitting_members(model, contacts, tuples, fit.R, fit.t, tolerance)
+        normals, offsets, centres = model.planes.normals[facets], model.planes.offsets[facets], model.centroids[facets]
+    return facets
+
+
+def _widen(model, contacts, arrays, tolerance, solver, prior, deadline, progress, timing):
+    """When nothing matched: search again with the pair tolerances widened by each factor of
+    WIDEN_SCHEDULE in turn (3σ gates become 4.5σ, then 6σ), stopping at the first that finds
+    hypotheses, at the time limit, or when the contacts could not fit even the widest gate.
+    Gaussian noise has tails beyond any fixed gate: one reading at 4σ must not empty the
+    answer. Returns (arrays, what was widened), or the empty ``arrays`` and ""."""
+    for factor in WIDEN_SCHEDULE:
+        wide = tolerance.widened(factor)
+        if deadline.passed or contacts.spread > model.diameter + wide.distance:
+            break
+        found, more, _ = search(model, contacts, wide, solver=solver, prior=prior, deadline=deadline, progress=progress)
+        for key in timing:
+            timing[key] += more[key]
+        if len(found.cost):
+            return found, (f"nothing matched at the stated noise: the pair tolerances were widened {factor:g}x "
+                            f"(distance ±{wide.distance:.3g}, angle ±{np.degrees(wide.angle):.3g}°)")
+    return arrays, ""
+
+
+def _outlier_sets(n, max_outliers):
+    """Every set of 1..max_outliers fingers to leave unassigned."""
+    return [np.array(c) for q in range(1, max_outliers + 1) for c in combinations(range(n), q)]
+
