@@ -61,3 +61,34 @@ def test_every_name_in_the_readme_exists():
         except (ImportError, AttributeError):
             missing.append(name)
     assert missing == [], f"README names that do not exist: {missing}"
+
+
+PACKAGE = Path(__file__).resolve().parents[1] / "contactpose"
+
+
+def test_every_subpackage_declares_its_public_names():
+    """Each subpackage's __init__ states __all__, and every name in it exists."""
+    for init in sorted(PACKAGE.glob("*/__init__.py")):
+        name = f"contactpose.{init.parent.name}"
+        module = importlib.import_module(name)
+        assert isinstance(getattr(module, "__all__", None), list), f"{name} declares no __all__"
+        for public in module.__all__:
+            resolve(f"{init.parent.name}.{public}")
+
+
+def test_experiments_import_no_private_name():
+    """The experiments use the library's public names only: none with a leading underscore."""
+    import ast
+
+    private = []
+    for script in sorted((PACKAGE.parent / "experiments").glob("*.py")):
+        for node in ast.walk(ast.parse(script.read_text())):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("contactpose"):
+                private += [f"{script.name}: {node.module}.{a.name}" for a in node.names if a.name.startswith("_")]
+    assert private == []
+
+
+def test_no_root_module_belongs_to_the_harness():
+    """Sweeps, benches, demos, figures and the peers live in their packages, not at the root."""
+    roots = {p.stem for p in PACKAGE.glob("*.py")}
+    assert not roots & {"sweep", "bench", "demo", "viz", "baselines"}, roots

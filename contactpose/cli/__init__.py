@@ -28,6 +28,8 @@ from contactpose.cli.common import (
 )
 from contactpose.errors import ContactPoseError
 
+__all__ = ["build_parser", "main"]
+
 log = logging.getLogger("contactpose")
 
 
