@@ -109,7 +109,10 @@ class Contacts:
         return Contacts(np.vstack([c.points for c in every]), finger_normals=np.vstack([c.finger_normals for c in every]))
 
     def permuted(self, order):
-        """The contacts in another finger order. order : (n,) int."""
+        """The contacts in another finger order (these same contacts for their own order).
+        order : (k,) int, a selection of the n fingers."""
+        if np.array_equal(order, np.arange(self.n)):
+            return self
         return Contacts(self.points[order], finger_normals=self.finger_normals[order])
 
     def to_dict(self):

@@ -22,6 +22,7 @@ from contactpose.contacts import Contacts, Tolerance
 from contactpose.errors import ContactPoseError, ContactsError, check_count
 from contactpose.options import DEFAULT_POSITION_NOISE_FRAC, DEFAULT_REFINE, KEEP, METHODS, SOLVERS, check_robust
 from contactpose.progress import Deadline
+from contactpose.scoring.freespace import drop_blocked
 from contactpose.scoring.status import units_message
 from contactpose.solvers.polish import lowest_chi2_bound
 from contactpose.types import HypothesisList, PosePrior, Result
@@ -101,7 +102,7 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
                                       progress=progress)
     if finger_radius is not None:
         with _clock(timing, "free_space"):
-            arrays = stages.drop_blocked(model, contacts, arrays, finger_radius)
+            arrays = drop_blocked(model, contacts, arrays, finger_radius)
     assignments = len(arrays.cost)
     if fast and distinct:
         with _clock(timing, "rank"):
@@ -115,10 +116,8 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
                                                       k=refine)
         notes += (rescue,)
     with _clock(timing, "rank"):
-        if fast:
-            classes, status, hint = stages.classify(model, contacts, arrays, tolerance, deadline=deadline, notes=notes)
-        else:
-            classes, status, hint = paper.classify_paper(model, contacts, arrays, tolerance, deadline=deadline)
+        classes, status, hint = stages.classify(model, contacts, arrays, tolerance, bound=fast, deadline=deadline,
+                                                notes=notes)
         num = len(arrays.cost)
         if keep == "fitting" and fast and distinct and status != "time_limit":
             arrays, classes = stages.listed(arrays, classes)

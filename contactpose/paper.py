@@ -8,7 +8,8 @@ setting:
 * the tree T grown node by node (§3.2, search.tree.join_tuples_paper);
 * each hypothesis posed by Levenberg–Marquardt on eq. (7) from the prior or the identity (§4),
   or with solver="closed-form" by the exact closed-form minimum of eq. (7);
-* ranked by eq. (7)'s ℒ (costs.paper), its fit tested by the χ² at that pose.
+* ranked by eq. (7)'s ℒ (costs.paper), its fit tested by the χ² at that pose
+  (stages.classify with ``bound=False``).
 
 No polish, no distinct-pose grouping, no surface model and no factor graph: those are the
 default method's. research/errata.md lists where the two differ.
@@ -21,14 +22,13 @@ import time
 import numpy as np
 
 from contactpose.costs.paper import paper_cost, paper_offset_residuals
-from contactpose.options import fit_threshold
 from contactpose.progress import Deadline
 from contactpose.scoring import rank as ranking
 from contactpose.search.grow import find_pairs, warn_explosion
 from contactpose.search.tree import join_tuples_paper
-from contactpose.stages import TREE_SHARE, classify, pose_hypotheses
+from contactpose.stages import TREE_SHARE, pose_hypotheses
 
-__all__ = ["classify_paper", "rank_paper", "search"]
+__all__ = ["rank_paper", "search"]
 
 
 def search(model, contacts, tolerance, *, solver="lm", prior=None, deadline=None, progress=None):
@@ -66,10 +66,3 @@ def rank_paper(model, contacts, facets, fit, tolerance, cost=None):
     arrays = ranking.hypothesis_arrays(model, contacts, facets, fit, tolerance, offset=offset, order=False)
     r_n = np.ascontiguousarray(arrays.residuals[..., :3])
     return ranking.ranked(arrays, paper_cost(r_n, offset) if cost is None else cost)
-
-
-def classify_paper(model, contacts, arrays, tolerance, *, deadline=None):
-    """Pose classes and status (stages.classify) with the paper's fit test: the χ² at each
-    hypothesis's pose within the fit threshold. -> (classes, status, hint)"""
-    return classify(model, contacts, arrays, tolerance, fits=arrays.chi2 <= fit_threshold(contacts.n),
-                    deadline=deadline)

@@ -28,7 +28,6 @@ from contactpose.progress import Deadline
 from contactpose.scoring import evidence, refine
 from contactpose.scoring import rank as ranking
 from contactpose.scoring.classes import MAX_CLASS_HYPOTHESES, distinct_poses, pose_classes
-from contactpose.scoring.freespace import free_space_violations
 from contactpose.scoring.infacet import within_noise
 from contactpose.scoring.status import status as status_of
 from contactpose.search.grow import grow_tree, triple_test, warn_explosion
@@ -52,7 +51,7 @@ POOR_FIT_LISTED = 10
 #: The search's stage times, in seconds, as every Result's timing starts.
 SEARCH_STAGES = ("pairs", "tree", "pose", "rank")
 
-__all__ = ["POOR_FIT_LISTED", "SEARCH_STAGES", "classify", "distinct", "drop_blocked", "find_hypotheses",
+__all__ = ["POOR_FIT_LISTED", "SEARCH_STAGES", "classify", "distinct", "find_hypotheses",
            "join_hypotheses", "listed", "listed_rows", "polish_hypotheses", "pose_hypotheses", "rank_hypotheses",
            "refine_hypotheses", "search", "surface_hypotheses"]
 
@@ -63,21 +62,34 @@ def find_hypotheses(model, contacts, tolerance, *, solver="closed-form", prior=N
                     progress=None, tree=None):
     """Every hypothesis of the default method: :func:`search` of all contacts, then of every
     subset that leaves 1..max_outliers fingers unassigned (facet -1, OUTLIER_PENALTY each, their
-    contacts out of the pose), and, when nothing matched, searches at widened tolerances
-    (:func:`_widen`); solver : as for :func:`pose_hypotheses`. -> (HypothesisArrays ranked, seconds per stage (SEARCH_STAGES), the
-    SearchTree of all contacts or None, a note on the widening or "")"""
+    contacts out of the pose), and, when nothing matched, of all contacts with the pair
+    tolerances widened by each factor of WIDEN_SCHEDULE in turn (3σ gates become 4.5σ, then
+    6σ), until one finds hypotheses, the time limit passes or the contacts could not fit even
+    the widest gate: Gaussian noise has tails beyond any fixed gate, and one reading at 4σ must
+    not empty the answer. solver : as for :func:`pose_hypotheses`. -> (HypothesisArrays
+    ranked, seconds per stage (SEARCH_STAGES), the SearchTree of all contacts or None, a note
+    on the widening or "")"""
     deadline = deadline or Deadline()
-    arrays, timing, grown = search(model, contacts, tolerance, solver=solver, prior=prior, deadline=deadline,
-                                   progress=progress, tree=tree)
-    for dropped in _outlier_sets(contacts.n, max_outliers):
-        fingers = np.setdiff1d(np.arange(contacts.n), dropped)
-        sub, sub_timing, _ = search(model, contacts.permuted(fingers), tolerance, solver=solver, prior=prior,
-                                    deadline=deadline, progress=progress)
-        arrays = arrays.merged(sub.widened(fingers, contacts.n, len(dropped) * OUTLIER_PENALTY))
-        timing = {k: timing[k] + sub_timing[k] for k in timing}
+    every = np.arange(contacts.n)
+    subsets = [every] + [np.setdiff1d(every, c) for q in range(1, max_outliers + 1) for c in combinations(every, q)]
+    attempts = [(f, tolerance, 1.0) for f in subsets] + [(every, tolerance.widened(f), f) for f in WIDEN_SCHEDULE]
+    arrays = timing = grown = None
     widened = ""
-    if len(arrays.cost) == 0:
-        arrays, widened = _widen(model, contacts, arrays, tolerance, solver, prior, deadline, progress, timing)
+    for fingers, gates, factor in attempts:
+        if factor > 1.0 and (len(arrays.cost) or deadline.passed or contacts.spread > model.diameter + gates.distance):
+            break
+        found, more, sub_tree = search(model, contacts.permuted(fingers), gates, solver=solver, prior=prior,
+                                       deadline=deadline, progress=progress, tree=tree if timing is None else None)
+        if timing is None:
+            arrays, timing, grown = found, more, sub_tree
+            continue
+        timing = {k: timing[k] + more[k] for k in timing}
+        if factor == 1.0:
+            arrays = arrays.merged(found.widened(fingers, contacts.n, (contacts.n - len(fingers)) * OUTLIER_PENALTY))
+        elif len(found.cost):
+            arrays = found
+            widened = (f"nothing matched at the stated noise: the pair tolerances were widened {factor:g}x "
+                       f"(distance ±{gates.distance:.3g}, angle ±{np.degrees(gates.angle):.3g}°)")
     return arrays, timing, grown, widened
 
 
@@ -175,13 +187,6 @@ def polish_hypotheses(model, contacts, arrays, tolerance):
 
 # ------------------------------------------------------------ after search ---
 
-def drop_blocked(model, contacts, arrays, finger_radius):
-    """The hypotheses but those whose (determined) pose puts a contact where no finger of
-    ``finger_radius`` fits (scoring.freespace)."""
-    bad = free_space_violations(model, arrays.facets, arrays.poses, contacts, finger_radius)
-    return arrays.take(np.flatnonzero(~(bad & ~arrays.fit.underdetermined)))
-
-
 def distinct(model, arrays, tolerance, deadline):
     """One hypothesis per distinct pose (scoring.classes.distinct_poses), within what is left
     of the deadline (a progress.Deadline), or GROUPING_GRACE seconds if more; a cut there
@@ -241,19 +246,21 @@ def refine_hypotheses(model, contacts, arrays, tolerance, *, prior=None, robust=
     return refined(arrays)[0], note
 
 
-def classify(model, contacts, arrays, tolerance, *, fits=None, deadline=None, notes=()):
+def classify(model, contacts, arrays, tolerance, *, bound=True, deadline=None, notes=()):
     """Pose classes of the hypotheses that fit within noise, and the status with its hint
     (scoring.status; deadline : the search's progress.Deadline: once passed, the fit test
     stops and the status is "time_limit").
 
-    fits : (H,) bool, the hypotheses that fit; default: the in-facet lower bound on the best
-    χ² (scoring.infacet) decides. notes : what earlier stages did, joined to the hint.
-    Returns (list of PoseClass, status, hint).
+    bound : the fit test, the in-facet lower bound on each hypothesis's best χ²
+    (scoring.infacet), or, False, the χ² at its pose (the paper's). notes : what earlier
+    stages did, joined to the hint. Returns (list of PoseClass, status, hint).
     """
-    if fits is None:
+    if bound:
         fits = within_noise(model, contacts, arrays, tolerance, fit_threshold(contacts.n), enough=MAX_CLASS_HYPOTHESES,
                             deadline=deadline)
-    classes = pose_classes(model, arrays, contacts.n, fits)
+    else:
+        fits = arrays.chi2 <= fit_threshold(contacts.n)
+    classes = pose_classes(model, arrays, fits)
     truncated = deadline is not None and deadline.hit
     status, hint = status_of(model, contacts, arrays, classes, tolerance, fits, truncated)
     for note in notes:
@@ -319,28 +326,3 @@ def _member_facets(model, contacts, tuples, tolerance, prior):
         facets = fitting_members(model, contacts, tuples, fit.R, fit.t, tolerance)
         normals, offsets, centres = model.planes.normals[facets], model.planes.offsets[facets], model.centroids[facets]
     return facets
-
-
-def _widen(model, contacts, arrays, tolerance, solver, prior, deadline, progress, timing):
-    """When nothing matched: search again with the pair tolerances widened by each factor of
-    WIDEN_SCHEDULE in turn (3σ gates become 4.5σ, then 6σ), stopping at the first that finds
-    hypotheses, at the time limit, or when the contacts could not fit even the widest gate.
-    Gaussian noise has tails beyond any fixed gate: one reading at 4σ must not empty the
-    answer. Returns (arrays, what was widened), or the empty ``arrays`` and ""."""
-    for factor in WIDEN_SCHEDULE:
-        wide = tolerance.widened(factor)
-        if deadline.passed or contacts.spread > model.diameter + wide.distance:
-            break
-        found, more, _ = search(model, contacts, wide, solver=solver, prior=prior, deadline=deadline, progress=progress)
-        for key in timing:
-            timing[key] += more[key]
-        if len(found.cost):
-            return found, (f"nothing matched at the stated noise: the pair tolerances were widened {factor:g}x "
-                            f"(distance ±{wide.distance:.3g}, angle ±{np.degrees(wide.angle):.3g}°)")
-    return arrays, ""
-
-
-def _outlier_sets(n, max_outliers):
-    """Every set of 1..max_outliers fingers to leave unassigned."""
-    return [np.array(c) for q in range(1, max_outliers + 1) for c in combinations(range(n), q)]
-

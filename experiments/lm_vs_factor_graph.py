@@ -130,7 +130,7 @@ def refined_ambiguous(model, contacts, refinement, arrays, tolerance):
     """The library's ambiguity rule on a factor-graph refinement: its hypotheses' pose
     classes, weighted by their probabilities (scoring.status.ambiguous)."""
     refined = refined_arrays(model, contacts, refinement, arrays.fit.take(refinement.index), tolerance)
-    return ambiguous(pose_classes(model, refined, contacts.n, fits=np.ones(len(refined.cost), bool)))
+    return ambiguous(pose_classes(model, refined, fits=np.ones(len(refined.cost), bool)))
 
 
 def run_grasp(model, name, g, sx_frac, sn_deg, priors, rng, part):

@@ -356,7 +356,7 @@ def test_pose_classes_equal_the_naive_grouping(rock_model, box_model):
             g = simulate.grasp(model, rng, n=4, noise="bounded", **NOISE)
             a = localize(model, g.contacts, **NOISE).hypotheses.arrays
             fits = np.ones(len(a.cost), dtype=bool)
-            classes = pose_classes(model, a, 4, fits)
+            classes = pose_classes(model, a, fits)
             labels = np.empty(min(len(a.cost), MAX_CLASS_HYPOTHESES), dtype=int)
             for c, cls in enumerate(classes):
                 labels[cls.members] = c

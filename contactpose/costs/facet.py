@@ -107,6 +107,17 @@ def plane_jacobian(J, row_n, row_o, R, normal, p, inv_sn, inv_sx):
 
 
 @njit(cache=True)
+def plane_terms(R, t, normal, offset, point, finger_normal):
+    """One contact on one facet plane with its Gauss–Newton quantities: (p, r_n, r_o, J_nᵀ r_n,
+    n_k × p), 3-tuples but r_o: the offset row is j_o = (n_k × p, -n_k) and J_nᵀ J_n = I - n_k n_kᵀ
+    (:func:`plane_residual`, :func:`normal_gradient`)."""
+    p, r_n, r_o = plane_residual(R, t, normal, offset, point, finger_normal)
+    n0, n1, n2 = float(normal[0]), float(normal[1]), float(normal[2])
+    return p, r_n, r_o, normal_gradient(R, (n0, n1, n2), r_n), (n1 * p[2] - n2 * p[1], n2 * p[0] - n0 * p[2],
+                                                                 n0 * p[1] - n1 * p[0])
+
+
+@njit(cache=True)
 def normal_gradient(R, normal, r_n):
     """J_nᵀ r_n = n_k × Rᵀ r_n (3-tuple), the rotation gradient of ½|r_n|²; its Gauss–Newton
     matrix is J_nᵀ J_n = I - n_k n_kᵀ. normal : 3-tuple n_k; r_n : 3-tuple."""

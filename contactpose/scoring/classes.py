@@ -24,18 +24,19 @@ DISTINCT_RMS_FRAC = 0.05
 DISTINCT_RMS_SIGMA = 3.0
 
 
-def pose_classes(model, arrays, n, fits=None):
-    """Group the ranked hypotheses (HypothesisArrays) that fit within noise into pose
-    classes, best class first: :func:`classify_poses` on their poses, χ² and probabilities."""
-    return classify_poses(model, arrays.poses, arrays.chi2, n, fits, arrays.probability)
+def pose_classes(model, arrays, fits):
+    """Group the ranked hypotheses (HypothesisArrays) that fit within noise, fits (H,) bool,
+    into pose classes, best class first: :func:`classify_poses` on their poses, χ² and
+    probabilities."""
+    return classify_poses(model, arrays.poses, arrays.chi2, None, fits, arrays.probability)
 
 
 def classify_poses(model, all_poses, chi2, n, fits=None, probability=None):
     """Pose classes of ranked poses, best class first.
 
-    all_poses : (H, 4, 4) best first; chi2 : (H,); fits : (H,) bool, the poses that fit
-    (default: χ² <= fit_threshold(n)); probability : (H,) the factor graph's, else the
-    likelihood exp(-χ²/2) weighs the classes. A pose joins the first class whose best pose
+    all_poses : (H, 4, 4) best first; chi2 : (H,); n : the contacts, for the default fits;
+    fits : (H,) bool, the poses that fit (default: χ² <= fit_threshold(n)); probability :
+    (H,) the factor graph's, else the likelihood exp(-χ²/2) weighs the classes. A pose joins the first class whose best pose
     is within ADD-S of it, else opens one: each new class takes the best pose left, then
     every later one that matches it.
     """

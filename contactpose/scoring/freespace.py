@@ -84,3 +84,10 @@ def free_space_violations(model, facets, poses, contacts, finger_radius, *, per_
         bad |= caster.distance(centres.reshape(-1, 3)).reshape(h, n) < finger_radius - slack
     bad &= assigned
     return bad if per_contact else bad.any(axis=1)
+
+
+def drop_blocked(model, contacts, arrays, finger_radius):
+    """The hypotheses but those whose (determined) pose puts a contact where no finger of
+    ``finger_radius`` fits (:func:`free_space_violations`)."""
+    bad = free_space_violations(model, arrays.facets, arrays.poses, contacts, finger_radius)
+    return arrays.take(np.flatnonzero(~(bad & ~arrays.fit.underdetermined)))

@@ -34,11 +34,11 @@ def hypothesis_arrays(model, contacts, facets, fit, tolerance, *, cost=None, off
     """
     facets = np.asarray(facets, dtype=np.int64)
     ok, safe = facets >= 0, np.maximum(facets, 0)
+    cone = None if surface is None else normal_residuals(fit.R, np.nan_to_num(surface[0]), contacts.finger_normals)
     r_n, r_o, r_l = contact_residuals(fit.R, fit.t, model.planes.normals[safe], model.planes.offsets[safe],
                                       model.triangles[safe], contacts.points, contacts.finger_normals)
-    if surface is not None:
-        r_n = normal_residuals(fit.R, np.nan_to_num(surface[0]), contacts.finger_normals)
-        r_l = np.sqrt(np.maximum(np.nan_to_num(surface[1]) ** 2 - r_o**2, 0.0))
+    if surface is not None:  # r_n to the cone's direction ν*, r_l what of the gap r_o leaves
+        r_n, r_l = cone, np.sqrt(np.maximum(np.nan_to_num(surface[1]) ** 2 - r_o**2, 0.0))
     if not ok.all():
         r_n, r_o, r_l = r_n * ok[..., None], r_o * ok, r_l * ok
     chi2 = whitened_cost(r_n, r_o, r_l, tolerance.normal_noise, tolerance.position_noise) + outlier_penalty(facets)

@@ -178,10 +178,17 @@ def _select(model, contacts, arrays, tolerance, prior, k, point_to_facet):
     """Rows to refine, their LM start poses and facets: (K,) int, (K, 4, 4), (K, n) int, and
     how many rows passed the prior gate (-1 without a prior)."""
     h = len(arrays.facets)
-    if prior is None:
-        idx = np.arange(h if k == 0 else min(k, h))
-        T = np.asarray(arrays.poses)[idx]
-        return idx, T, fitting_facets(model, contacts, np.asarray(arrays.facets)[idx], T, tolerance), -1
+    if prior is not None:
+        return _select_with_prior(model, contacts, arrays, tolerance, prior, k, point_to_facet)
+    idx = np.arange(h if k == 0 else min(k, h))
+    T = np.asarray(arrays.poses)[idx]
+    return idx, T, fitting_facets(model, contacts, np.asarray(arrays.facets)[idx], T, tolerance), -1
+
+
+def _select_with_prior(model, contacts, arrays, tolerance, prior, k, point_to_facet):
+    """_select with a prior: the rows that pass the prior gate (all, when none does), posed in
+    closed form with the prior, the best k by contact χ² plus the prior's Mahalanobis distance."""
+    h = len(arrays.facets)
     rows = np.flatnonzero(prior_gate(model, arrays, tolerance, prior))
     agreeing = len(rows)
     if len(rows) == 0:  # the prior contradicts every hypothesis: rank them all anyway

@@ -36,14 +36,10 @@ import numba
 import numpy as np
 
 from contactpose.costs.association import fitting_members
-from contactpose.costs.facet import in_plane, normal_gradient, normal_residual, plane_residual
+from contactpose.costs.facet import in_plane, normal_residual, plane_terms
 from contactpose.geometry.kernels import (  # 3-tuple kernels
-    _add,
     _closest_on_triangle,
-    _cross,
     _d2,
-    _dot,
-    _sub,
     _t,
 )
 from contactpose.geometry.se3 import retract
@@ -119,7 +115,8 @@ def polished_poses(model, contacts, arrays, rows, tolerance, threshold, rounds=P
     χ² within ``threshold`` can reach. rows : (K,) int  ->  R (K, 3, 3), t (K, 3)"""
     R, t, planes, weights, determined, free, shape = _problem(model, contacts, arrays, rows, tolerance, threshold)
     for _ in range(rounds):
-        R, t = retract(R, t, _bounds(R, t, *planes, contacts, *weights, determined, free, shape, STEPS)[1])
+        xi = _bounds(R, t, *planes, contacts, *weights, determined, free, shape, STEPS)[1]
+        R, t = retract(R, t, xi)
     return R, t
 
 
@@ -177,14 +174,12 @@ def _bound_kernel(R, t, normals, offsets, points, finger_normals, wn, wx, region
         A[:], H[:], g[:], g_n[:] = 0.0, 0.0, 0.0, 0.0
         chi2_0 = 0.0
         for i in range(n):
-            pi, r_n, r_o = plane_residual(R[k], t[k], normals[k, i], offsets[k, i], points[i], finger_normals[i])
-            p[i, 0], p[i, 1], p[i, 2] = pi
-            nrm = _t(normals[k, i])
-            chi2_0 += wn[k, i] * _dot(r_n, r_n) + wx[k, i] * r_o * r_o
             # normal term: J_nᵀJ_n = I - n nᵀ, J_nᵀ r_n = n × Rᵀ r_n; offset term: j_o = (n × p, -n)
-            gn = normal_gradient(R[k], nrm, r_n)
-            j_o = _cross(nrm, pi)
-            pp = _dot(pi, pi)
+            pi, r_n, r_o, gn, j_o = plane_terms(R[k], t[k], normals[k, i], offsets[k, i], points[i], finger_normals[i])
+            p[i, 0], p[i, 1], p[i, 2] = pi
+            nrm = normals[k, i]
+            chi2_0 += wn[k, i] * (r_n[0] * r_n[0] + r_n[1] * r_n[1] + r_n[2] * r_n[2]) + wx[k, i] * r_o * r_o
+            pp = pi[0] * pi[0] + pi[1] * pi[1] + pi[2] * pi[2]
             for a in range(3):
                 g_n[a] += wn[k, i] * gn[a]
                 g[a] += wx[k, i] * r_o * j_o[a]
@@ -197,7 +192,11 @@ def _bound_kernel(R, t, normals, offsets, points, finger_normals, wn, wx, region
                     A[a + 3, b + 3] += wx[k, i] * nrm[a] * nrm[b]
                     H[a, b] += a_n + wx[k, i] * ((a == b) * pp - pi[a] * pi[b])
                     H[a + 3, b + 3] += wx[k, i] * (a == b)
-            _add_skew(H, pi, wx[k, i])
+            skew = ((0.0, -pi[2], pi[1]), (pi[2], 0.0, -pi[0]), (-pi[1], pi[0], 0.0))
+            for a in range(3):  # the off-diagonal blocks of GᵀG: ±w [p]×
+                for b in range(3):
+                    H[a, b + 3] += wx[k, i] * skew[a][b]
+                    H[a + 3, b] -= wx[k, i] * skew[a][b]
         for a in range(6):
             g[a] += g_n[a]
         # regularise each block by its own trace, so that the solve does not depend on units
@@ -215,34 +214,28 @@ def _bound_kernel(R, t, normals, offsets, points, finger_normals, wn, wx, region
         h = np.zeros(6)
         const, reached = chi2_0, 0.0
         for i in range(n):
-            pi = _t(p[i])
-            q = _sub(_add(pi, _cross(pi, w)), v)
-            d = _sub(q, _closest_of(q, i, cand, runs, triangles, centres, radii, last[i])[0])
-            nrm = _t(normals[k, i])
-            u = in_plane(d, nrm)                             # |u| = r_l at q
-            gu = _cross(u, pi)
+            p0, p1, p2 = p[i, 0], p[i, 1], p[i, 2]
+            q = (p0 + (p1 * w[2] - p2 * w[1]) - v[0], p1 + (p2 * w[0] - p0 * w[2]) - v[1],
+                 p2 + (p0 * w[1] - p1 * w[0]) - v[2])  # p + p × ω - v
+            c = _closest_of(q, i, cand, runs, triangles, centres, radii, last[i])[0]
+            d = (q[0] - c[0], q[1] - c[1], q[2] - c[2])
+            n0, n1, n2 = normals[k, i, 0], normals[k, i, 1], normals[k, i, 2]
+            u = in_plane(d, (n0, n1, n2))                    # |u| = r_l at q
+            gu = (u[1] * p2 - u[2] * p1, u[2] * p0 - u[0] * p2, u[0] * p1 - u[1] * p0)  # u × p
             for a in range(3):
                 h[a] += wx[k, i] * gu[a]
                 h[a + 3] -= wx[k, i] * u[a]
-            const += wx[k, i] * _dot(u, u)
-            r_n = normal_residual(R[k], _add(nrm, _cross(w, nrm)), finger_normals[i])  # at R (I + [ω]×)
-            reached += wn[k, i] * _dot(r_n, r_n) + wx[k, i] * _dot(d, d)
+            const += wx[k, i] * (u[0] * u[0] + u[1] * u[1] + u[2] * u[2])
+            turned = (n0 + (w[1] * n2 - w[2] * n1), n1 + (w[2] * n0 - w[0] * n2), n2 + (w[0] * n1 - w[1] * n0))
+            r_n = normal_residual(R[k], turned, finger_normals[i])  # at R (I + [ω]×): n + ω × n
+            reached += (wn[k, i] * (r_n[0] * r_n[0] + r_n[1] * r_n[1] + r_n[2] * r_n[2])
+                        + wx[k, i] * (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]))
         if determined[k] and np.linalg.cond(A) < SINGULAR_COND:  # the facets may leave a direction free
             gh = g + h
             bound[k] = const - 2.0 * (h @ xi) - gh @ np.linalg.solve(A, gh)
         else:
             bound[k] = reached
         xi_out[k] = xi
-
-
-@numba.njit(cache=True)
-def _add_skew(H, p, w):
-    """H[:3, 3:] += w [p]×, H[3:, :3] -= w [p]× (the off-diagonal blocks of GᵀG)."""
-    skew = ((0.0, -p[2], p[1]), (p[2], 0.0, -p[0]), (-p[1], p[0], 0.0))
-    for a in range(3):
-        for b in range(3):
-            H[a, b + 3] += w * skew[a][b]
-            H[a + 3, b] -= w * skew[a][b]
 
 
 @numba.njit(cache=True)
@@ -286,11 +279,12 @@ def _alternate(p, cand, runs, triangles, centres, radii, wx, chol, g_n, steps):
         rhs[:] = g_n
         w, v = (xi[0], xi[1], xi[2]), (xi[3], xi[4], xi[5])
         for i in range(len(p)):
-            pi = _t(p[i])
-            q = _sub(_add(pi, _cross(pi, w)), v)
+            p0, p1, p2 = p[i, 0], p[i, 1], p[i, 2]
+            q = (p0 + (p1 * w[2] - p2 * w[1]) - v[0], p1 + (p2 * w[0] - p0 * w[2]) - v[1],
+                 p2 + (p0 * w[1] - p1 * w[0]) - v[2])  # p + p × ω - v
             c, last[i] = _closest_of(q, i, cand, runs, triangles, centres, radii, last[i])
-            u = _sub(pi, c)
-            gu = _cross(u, pi)
+            u = (p0 - c[0], p1 - c[1], p2 - c[2])
+            gu = (u[1] * p2 - u[2] * p1, u[2] * p0 - u[0] * p2, u[0] * p1 - u[1] * p0)  # u × p
             for a in range(3):
                 rhs[a] += wx[i] * gu[a]
                 rhs[a + 3] -= wx[i] * u[a]
@@ -328,21 +322,21 @@ def _candidates(p, reach, regions, centres, radii, members, runs):
     facets, count = np.empty((n, size), dtype=np.int64), np.zeros(n, dtype=np.int64)
     starts, ids, nruns = np.zeros((n, size + 1), dtype=np.int64), np.empty((n, size), dtype=np.int64), np.zeros(n, dtype=np.int64)
     for i in range(n):
-        x = _t(p[i])
+        x = p[i]
         lo, hi = grp_ptr[regions[i]], grp_ptr[regions[i] + 1]
         near = np.inf  # an upper bound on the distance from p_i to the region
         for g in range(lo, hi):
-            if np.sqrt(_d2(x, _t(grp_centre[g]))) - grp_radius[g] >= near:
+            if _distance(x, grp_centre[g]) - grp_radius[g] >= near:
                 continue
             for e in range(grp_mem[g], grp_mem[g + 1]):
-                near = min(near, np.sqrt(_d2(x, _t(centres[members[e]]))) + radii[members[e]])
+                near = min(near, _distance(x, centres[members[e]]) + radii[members[e]])
         for g in range(lo, hi):
-            if np.sqrt(_d2(x, _t(grp_centre[g]))) - grp_radius[g] - spread[g] > near + reach[i]:
+            if _distance(x, grp_centre[g]) - grp_radius[g] - spread[g] > near + reach[i]:
                 continue
             before = count[i]
             for e in range(grp_mem[g], grp_mem[g + 1]):
                 f = members[e]
-                if np.sqrt(_d2(x, _t(centres[f]))) - radii[f] <= near + reach[i]:
+                if _distance(x, centres[f]) - radii[f] <= near + reach[i]:
                     facets[i, count[i]] = f
                     count[i] += 1
             if count[i] > before:
@@ -350,6 +344,13 @@ def _candidates(p, reach, regions, centres, radii, members, runs):
                 nruns[i] += 1
                 starts[i, nruns[i]] = count[i]
     return facets, count, starts, ids, nruns
+
+
+@numba.njit(cache=True)
+def _distance(x, y):
+    """|x - y| of two points (3,)."""
+    d0, d1, d2 = x[0] - y[0], x[1] - y[1], x[2] - y[2]
+    return np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
 
 
 @numba.njit(cache=True)

@@ -481,7 +481,7 @@ def _classes(model, poses, probability):
                   np.zeros((k, 3), bool), np.zeros((k, 3)), np.zeros(k, bool))
     arrays = HypothesisArrays(np.zeros((k, 4), int), np.asarray(poses), -np.log(probability), z,
                               np.zeros((k, 4, 5)), fit, np.tile(np.eye(6), (k, 1, 1)), np.asarray(probability))
-    return pose_classes(model, arrays, 4, fits=np.ones(k, bool))
+    return pose_classes(model, arrays, fits=np.ones(k, bool))
 
 
 def test_ambiguous_rule(box):
