@@ -1,8 +1,8 @@
 """The stages of the online phase (§3.2, §4), each a public function of arrays in, arrays out.
 
 contacts -> search.grow.grow_tree (S_ij, eq. 5, and the tree T, §3.2; :func:`join_hypotheses`
-over given S_ij) -> :func:`pose_hypotheses` (a pose per hypothesis) -> :func:`rank_hypotheses` (residuals,
-χ², order) -> :func:`polish_hypotheses` (the poses moved onto the triangles)
+over given S_ij) -> :func:`pose_hypotheses` (a pose per hypothesis) -> :func:`rank_hypotheses`
+(residuals, χ², order) -> :func:`polish_hypotheses` (the poses moved onto the triangles)
 -> :func:`distinct` (one hypothesis per distinct pose) -> :func:`surface_hypotheses` and
 :func:`refine_hypotheses` (optional) -> :func:`classify` (pose classes and status)
 -> :func:`listed` (what keep="fitting" lists).

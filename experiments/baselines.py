@@ -10,10 +10,10 @@ that noise, drawn once per grasp and level and shared by every method):
   search finds at most ``paper_cap`` hypotheses;
 * ``prior``: the prior pose itself (what vision alone gives);
 * ``icp``: Open3D point-to-plane ICP of finger pads from the prior
-  (:func:`contactpose.baselines.icp`), pad radius and correspondence distance chosen by the
+  (:func:`contactpose.peers.icp`), pad radius and correspondence distance chosen by the
   tuning sweep on other grasps (``tuning/``);
 * ``icp-multistart``: the same ICP from K random starts, no prior, lowest contact χ² wins;
-* ``scaling-series``: the Scaling-Series particle filter (:func:`contactpose.baselines.scaling_series`)
+* ``scaling-series``: the Scaling-Series particle filter (:func:`contactpose.peers.scaling_series`)
   with the prior and globally, at three particle budgets (S, M, L).
 
 Success: rotation error < 5° and translation error < 5 % of the diameter.

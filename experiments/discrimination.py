@@ -51,7 +51,6 @@ counts.png/pdf and touch.png/pdf (drawn from the CSVs alone)::
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import logging
 import os
@@ -66,6 +65,7 @@ from contactpose.contacts import Tolerance
 from contactpose.costs.facet import normal_residuals, offset_residuals, whitened_cost
 from contactpose.costs.frame import object_frame as to_object_frame
 from contactpose.geometry.metrics import SAME_CLASS_ADDS_FRAC, adds, pose_success
+from contactpose.harness import sweep
 from contactpose.localize import localize
 from contactpose.model.object_model import ObjectModel
 from contactpose.options import fit_threshold
@@ -337,19 +337,6 @@ def summarize_touch(rows, touches):
     return out
 
 
-def write_csv(path, rows):
-    keys = list(dict.fromkeys(k for r in rows for k in r))
-    with open(path, "w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=keys, restval="")
-        writer.writeheader()
-        writer.writerows(rows)
-
-
-def read_csv(path):
-    with open(path, newline="") as fh:
-        return list(csv.DictReader(fh))
-
-
 # ------------------------------------------------------------------ figures
 
 def plot(out):
@@ -359,7 +346,7 @@ def plot(out):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    summary = [r for r in read_csv(os.path.join(out, "summary.csv")) if r["mesh"] != "all"]
+    summary = [r for r in sweep.read_rows(os.path.join(out, "summary.csv")) if r["mesh"] != "all"]
     meshes = list(dict.fromkeys(r["mesh"] for r in summary))
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.2))
     width = 0.8 / len(STAGES)
@@ -391,7 +378,7 @@ def plot(out):
     path = os.path.join(out, "touch_summary.csv")
     if not os.path.exists(path):
         return
-    touch = read_csv(path)
+    touch = sweep.read_rows(path)
     meshes = [m for m in dict.fromkeys(r["mesh"] for r in touch)]
     touches = sum(1 for k in touch[0] if k.startswith("resolved_") and not k.startswith("resolved_true"))
     fig, ax = plt.subplots(figsize=(max(6, 1.3 * len(meshes) + 2), 4))
@@ -480,11 +467,11 @@ def main(argv=None):
         log.info("%s done in %.0f s", name, time.perf_counter() - mesh_start)
     summary = summarize(rows)
     touch_summary = summarize_touch(touch_rows, args.touches) if touch_rows else []
-    write_csv(os.path.join(args.out, "grasps.csv"), rows)
-    write_csv(os.path.join(args.out, "summary.csv"), summary)
+    sweep.write_rows(os.path.join(args.out, "grasps.csv"), rows)
+    sweep.write_rows(os.path.join(args.out, "summary.csv"), summary)
     if touch_rows:
-        write_csv(os.path.join(args.out, "touch.csv"), touch_rows)
-        write_csv(os.path.join(args.out, "touch_summary.csv"), touch_summary)
+        sweep.write_rows(os.path.join(args.out, "touch.csv"), touch_rows)
+        sweep.write_rows(os.path.join(args.out, "touch_summary.csv"), touch_summary)
     config = {**vars(args), "position_noise": POSITION_NOISE, "normal_noise_deg": NORMAL_NOISE_DEG,
               "fingers": FINGERS, "noise": "bounded", "where": "area",
               "pose": "uniform random rotation, translation within ±0.5 diameter",

@@ -17,7 +17,7 @@ Methods on the same grasps: ``fast`` (the default method) on every grasp; ``pape
 (``method="paper"``, LM from the identity) on the first ``paper_grasps`` grasps per object and
 radius, counted as run only when it finishes within ``paper_time_limit`` seconds (its status is
 not ``time_limit``), or "not run" when the model has no facet table; ``icp-multistart`` (32
-random starts) and ``scaling-series`` (2000 particles) from contactpose/baselines.py with their
+random starts) and ``scaling-series`` (2000 particles) from contactpose/peers/ with their
 default budgets and ICP's default pad radius and correspondence distance (not tuned per object
 as experiments/baselines.py does), on the first ``baseline_grasps`` grasps.
 

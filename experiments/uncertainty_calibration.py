@@ -240,7 +240,7 @@ def main(argv=None):
         seed=args.seed, quick=args.quick, object=args.object, position_noise_frac=POSITION_NOISE_FRAC,
         normal_noise_deg=NORMAL_NOISE_DEG, noise="gaussian", where="area",
         types={k: dict(v, lam=list(v["lam"])) for k, v in TYPES.items() if k in args.types},
-        levels=LEVELS, hypothesis="true facets, refined by factor_graph.refine_hypotheses(k=1)",
+        levels=LEVELS, hypothesis="true facets, refined by scoring.refine.refine_hypotheses(k=1)",
         sampler=dict(walkers=unc.DEFAULT_WALKERS, init_scale=unc.INIT_SCALE, tau_chain=unc.TAU_CHAIN,
                      burn_tau=unc.BURN_TAU, thin_tau=unc.THIN_TAU, pilot_steps=unc.PILOT_STEPS,
                      first_steps=unc.FIRST_STEPS, max_steps=unc.MAX_STEPS,

@@ -201,7 +201,7 @@ def test_memory_particle_filter_beats_dead_reckoning_on_a_held_object():
     from contactpose.model.object_model import ObjectModel
     from contactpose.sim import grasps as simulate
     from contactpose.sim import objects
-    from tests.solvers.test_track import _motion
+    from tests.tracking.test_track import _motion
 
     model = ObjectModel.from_mesh(objects.load("rock"))
     d = model.diameter

@@ -222,7 +222,7 @@ def pack_contacts(model, contacts, facets):
     """
     facets = np.asarray(facets)
     safe = np.maximum(facets, 0)
-    data = np.empty(facets.shape + (20,))
+    data = np.empty(facets.shape + (PACKED_COLUMNS,))
     data[..., 0:3] = model.planes.normals[safe]
     data[..., 3] = model.planes.offsets[safe]
     data[..., 4:13] = model.triangles[safe].reshape(facets.shape + (9,))

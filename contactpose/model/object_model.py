@@ -487,7 +487,7 @@ class ObjectModel:
         (3); NaN rows elsewhere, and where the two normals are opposite (a sheet folded flat:
         |n_f × n_g| ≤ ARC_MIN, no one arc between them). A rounded fingertip on the crease
         measures a normal on that arc (model.surface's edge cone), which the smooth contact
-        model takes from here (factor_graph._smooth_normal_rows)."""
+        model takes from here (costs.smooth._smooth_normal_rows)."""
         topology, normals, tri = self.topology, self.planes.normals, self.triangles
         out = np.full((self.num_facets, 3, 12), np.nan)
         f, j = np.nonzero(topology.edge_convex & (topology.edge_nbr >= 0))

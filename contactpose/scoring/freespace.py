@@ -26,6 +26,8 @@ import logging
 
 import numpy as np
 
+from contactpose.costs.facet import offset_residuals
+from contactpose.costs.frame import object_frame
 from contactpose.errors import ContactPoseError
 from contactpose.geometry.raycast import raycaster
 
@@ -67,13 +69,11 @@ def free_space_violations(model, facets, poses, contacts, finger_radius, *, per_
         return np.zeros((0, n) if per_contact else 0, dtype=bool)
     assigned = facets >= 0
     k = np.where(assigned, facets, 0)
-    R, t = poses[:, :3, :3], poses[:, :3, 3]
     # contacts and outward finger directions in each hypothesis' object frame: (H, n, 3)
-    p = np.einsum("hji,hnj->hni", R, contacts.points[None] - t[:, None])
-    u = -np.einsum("hji,nj->hni", R, contacts.finger_normals)
+    p, u = object_frame(poses[:, :3, :3], poses[:, :3, 3], contacts.points, contacts.finger_normals)
     # foot of each contact on its facet's plane, then a hair outward
     n_k = model.planes.normals[k]
-    foot = p - (np.einsum("hni,hni->hn", n_k, p) + model.planes.offsets[k])[..., None] * n_k
+    foot = p - offset_residuals(p, n_k, model.planes.offsets[k])[..., None] * n_k
     origins = foot + START_REL * model.diameter * u
     caster = raycaster(model)
     bad = caster.entering_within(origins.reshape(-1, 3), u.reshape(-1, 3), finger_radius).reshape(h, n)

@@ -7,7 +7,7 @@
   answer is the one ``localize`` gives for all the contacts at once.
 * **An object held in the hand** (``hand_motion=(ΔT, σ_rot_deg, σ_trans)``). From the first
   hand motion on, every hypothesis that determines the pose becomes a track in an iSAM2
-  smoother (solvers.track.TrackSet: a pose variable per hand motion, linked by the slip,
+  smoother (tracking.track.TrackSet: a pose variable per hand motion, linked by the slip,
   tracks pruned by their sequential χ² and merged when their poses coincide, at most
   ``max_tracks``). A touch without a hand motion then joins the current pose variable. A
   touch that no track explains adds tracks localized afresh from the latest touches
@@ -28,6 +28,7 @@ from contactpose.localize import localize
 from contactpose.options import DEFAULT_POSITION_NOISE_FRAC
 from contactpose.scoring.rank import hypothesis_arrays
 from contactpose.search.tree import SearchTree
+from contactpose.stages import SEARCH_STAGES
 from contactpose.tracking import next_touch as touchmod
 from contactpose.tracking.track import MAX_TRACKS, TrackSet
 from contactpose.types import HypothesisArrays, HypothesisList, PoseFit, Result
@@ -182,7 +183,7 @@ def stage_times(total, **more):
     """A Result's timing (seconds) for an answer without a search: the search's stages (pairs, tree,
     pose, rank) 0, as they did not run, ``total`` and ``more`` stages (a held touch's
     ``track``: starting and updating the tracks)."""
-    return dict(pairs=0.0, tree=0.0, pose=0.0, rank=0.0, **more, total=float(total))
+    return {**dict.fromkeys(SEARCH_STAGES, 0.0), **more, "total": float(total)}
 
 
 def _empty_arrays(n):

@@ -20,11 +20,11 @@ incrementally. The contact factors are one per contact with the kernel as GTSAM'
 reweighting (factor_graph.reweighted_contact_factors; the smooth model's likewise), whose
 steps do not overshoot as the batched factor's square-rooted kernel does, and the
 point-to-facet rows are the in-plane vector from the contact's triangle
-(factor_graph._lateral_rows), whose Gauss–Newton model holds. Gauss–Newton can still cycle
+(costs.facet.lateral_rows), whose Gauss–Newton model holds. Gauss–Newton can still cycle
 where a contact's closest feature of its triangle changes, so :meth:`PoseTrack.relinearize`
 converges with Dogleg steps, and
 :meth:`PoseTrack.batch` solves the same graph by Levenberg–Marquardt from the same initial
-values, the reference. The two agree to 1e-6 and better (tests/solvers/test_track.py;
+values, the reference. The two agree to 1e-6 and better (tests/tracking/test_track.py;
 research/tracking.md, "Gauss–Newton steps").
 
 On a fine tessellation (facets a few sensor sigmas wide, such as the YCB meshes) a contact's
@@ -86,7 +86,7 @@ ASSOCIATION_SAMPLES = 20
 #: ... each solved by LM from the smoothed estimate with these settings.
 ASSOCIATION_LM = dict(max_iterations=30, relative_tol=1e-8, absolute_tol=1e-10)
 #: The contact models whose tracks associate a touch under their pose's uncertainty
-#: (factor_graph.association_weights): those with one normal per facet, whose neighbours'
+#: (costs.association.association_weights): those with one normal per facet, whose neighbours'
 #: normals differ by degrees. With smooth normals the neighbours' residuals differ by
 #: micrometres and hundredths of a degree, the weighting changed nothing measurable (YCB
 #: tracking +0.03° ± 0.015°, coverage within its noise) and cost 1 ms per touch of 20 tracks.
@@ -185,7 +185,7 @@ class PoseTrack:
 
     def add(self, contacts, facets=None, hand_motion=None):
         """One more touch: its contacts (world frame) and facets (n,) int, or None for each
-        contact's best-fitting facet under the predicted pose (factor_graph.nearest_fit_facets;
+        contact's best-fitting facet under the predicted pose (costs.association.nearest_fit_facets;
         the prediction is ΔT times the last smoothed pose: no slip), taken again under the
         updated pose until it holds or comes back to facets already tried (at most
         REASSOCIATE times); hand_motion : None (the
@@ -237,7 +237,7 @@ class PoseTrack:
 
     def _pack(self, local, facets):
         """The packing of contacts ``local`` (hand frame) on ``facets`` (..., n): (data, smooth or
-        None) from factor_graph.pack_contacts / smooth_data, or None for "surface"."""
+        None) from costs.facet.pack_contacts / smooth_data, or None for "surface"."""
         if self.contact_model == "surface":
             return None
         if self.contact_model == "smooth":
@@ -316,7 +316,7 @@ class PoseTrack:
     def _uncertainty(self, motion=None):
         """(6, 6) the last pose's covariance as iSAM2 holds it (its own linearization), plus
         the slip's when the hand moves on (``motion``), under which a touch's contacts take
-        their facets (factor_graph.association_weights); zero where the touches so far leave
+        their facets (costs.association.association_weights); zero where the touches so far leave
         directions free. None for smooth normals, whose facets differ too little for it to
         matter (:data:`UNCERTAIN_ASSOCIATION`)."""
         if self.contact_model not in UNCERTAIN_ASSOCIATION:
@@ -399,7 +399,7 @@ class PoseTrack:
         """(6, 6) marginal covariance of the last pose at the smoothed estimate, rotation first,
         in the tangent space of Y_k (a right perturbation of X_k = H_k Y_k is the same one of
         Y_k). As the single-pose factor graph's, it leaves out the point-to-facet hinge's
-        curvature (factor_graph._optimize): the marginal of :attr:`spread`, or iSAM2's own
+        curvature (factor_graph.optimize): the marginal of :attr:`spread`, or iSAM2's own
         where that leaves directions free. It holds each touch's facets fixed. With smooth
         normals ("auto" on a fine mesh) it takes no place information from the normal, whose
         facet-to-facet roughness is in its noise. Its 95 % region held the truth in 93.5 % of
@@ -422,7 +422,7 @@ class PoseTrack:
         """(6, 6) covariance of the last pose that also carries the association: :attr:`covariance`
         plus the mean of δ δᵀ over ``samples`` trajectories drawn from the joint covariance of all
         poses (the marginal of :attr:`spread`). Under each, every touch whose facets the track
-        associated takes its best-fitting facets again (factor_graph.nearest_fit_facets), and δ
+        associated takes its best-fitting facets again (costs.association.nearest_fit_facets), and δ
         is the last pose's move (tangent of Y_K) from the smoothed estimate to the optimum of the
         graph on those facets, solved by LM from the estimate (ASSOCIATION_LM): where the
         optimum lies under the associations that the pose's uncertainty allows, about the
@@ -656,13 +656,13 @@ def _coincide(a, b, merge):
 def add_touch(tracks, contacts, motion):
     """One touch for several tracks of one model, its facets associated per track: each
     contact takes its best-fitting facet under each track's predicted pose (one search for all
-    tracks: factor_graph.nearest_fit_facets), each track takes one iSAM2 update, and then,
+    tracks: costs.association.nearest_fit_facets), each track takes one iSAM2 update, and then,
     while a track's facets change under its updated pose to facets not yet tried for this
     touch (at most REASSOCIATE times), its touch's factor is swapped; a track whose facets come
     back to tried ones (a contact on the edge between two facets, each pushing it onto the
     other) keeps its last swap. Each track's score grows by the touch's χ² at the end. The
     touch is moved into each distinct hand frame once, packed once for all tracks that share
-    it, and scored in one compiled pass (factor_graph.touch_chi2).
+    it, and scored in one compiled pass (costs.smooth.touch_chi2).
 
     tracks : [PoseTrack] sharing one model, tolerance, contact model, point-to-facet setting
     and kernel; contacts : Contacts (world frame); motion : None or (ΔT (4, 4), slip noise
@@ -731,7 +731,7 @@ def _packings(tracks, locals_, facets):
 
 def _touch_chi2(tracks):
     """Each track's :meth:`PoseTrack._last_chi2`, the "facets" and "smooth" tracks (one
-    contact model, one touch size) in one compiled pass (factor_graph.touch_chi2). -> (H,)"""
+    contact model, one touch size) in one compiled pass (costs.smooth.touch_chi2). -> (H,)"""
     first = tracks[0]
     if first.contact_model == "surface":
         return np.array([_surface_chi2(t) for t in tracks])

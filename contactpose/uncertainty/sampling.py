@@ -502,7 +502,7 @@ def sample_hypotheses(model, contacts, hypotheses, tolerance, n_samples, rng, *,
 
     hypotheses : a ranked sequence of Hypothesis (``Result.hypotheses``). Hypotheses that
     carry a finite factor-graph ``covariance`` are sampled around their ``pose``; the others
-    are first refined with :func:`factor_graph.refine_hypotheses` (same prior and kernel) on
+    are first refined with :func:`scoring.refine.refine_hypotheses` (same prior and kernel) on
     their facets. Fingers left unassigned (facet -1) are left out. The caller attaches the
     samples (``localize`` puts them on ``.samples`` and ``.sample_covariance``).
     """

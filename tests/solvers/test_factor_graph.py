@@ -980,7 +980,7 @@ def test_smooth_normals_track_an_ellipsoid_closer_than_facet_normals():
     motions: tracks on its 5,120-facet tessellation, started 1° and 1 mm off. With the
     interpolated normals the trajectory is far closer to the truth than with facet normals."""
     from contactpose.tracking.track import PoseTrack
-    from tests.solvers.test_track import _motion
+    from tests.tracking.test_track import _motion
 
     model, axes = _ellipsoid_model()
     tol = Tolerance.from_noise(0.0005, 1.0)
