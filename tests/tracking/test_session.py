@@ -12,8 +12,8 @@ from contactpose.sim import grasps as simulate
 from contactpose.tracking.session import relocalizer
 from contactpose.tracking.track import TrackSet
 from tests.conftest import random_icosahedron
-from tests.tracking.test_track import _motion
 from tests.test_schema import validate
+from tests.tracking.test_track import _motion
 
 NOISE = 0.0025  # of the diameter
 
