@@ -209,7 +209,7 @@ def test_next_touch_cli_says_already_determined(tmp_path, capsys):
 
     from contactpose.cli import main
 
-    example = Path(__file__).resolve().parents[1] / "examples" / "banana_contacts.json"
+    example = Path(__file__).resolve().parents[2] / "examples" / "banana_contacts.json"
     out = tmp_path / "touch.json"
     assert main(["next-touch", "banana", "--contacts", str(example), "--candidates", "20", "-o", str(out)]) == 0
     assert "already determined" in capsys.readouterr().out
