@@ -32,7 +32,7 @@ import gtsam
 import numba
 import numpy as np
 
-from contactpose.costs.frame import object_frame
+from contactpose.costs.frame import object_frame, object_normal, object_point
 from contactpose.costs.robust import robust_rho
 from contactpose.geometry.kernels import (
     _closest_on_segment,
@@ -45,7 +45,7 @@ from contactpose.geometry.kernels import (
     _unit,
     point_triangle_distance,
 )
-from contactpose.geometry.se3 import hat, retract
+from contactpose.geometry.se3 import hat, hat3, retract
 
 #: Steps of the walk from facet to facet (each to a facet sharing a vertex).
 MAX_WALK = 16
@@ -346,3 +346,74 @@ def robust_cost(model, contacts, poses, facets, tolerance, robust):
     cost = land(model.topology, model.triangles, model.planes.normals, model.planes.valid, p.reshape(-1, 3),
                 nu.reshape(-1, 3), start, tolerance.position_noise, tolerance.normal_noise).cost
     return robust_rho(np.sqrt(cost), robust).reshape(len(poses), -1).sum(axis=1)
+
+
+@numba.njit(cache=True)
+def surface_rows(R, t, points, finger_normals, facets, topology, tri, normals, valid, sigma_position, sigma_normal,
+                 e, J):
+    """χ²_S's whitened rows at the pose (R (3, 3), t (3,)) and their Jacobian in the right
+    perturbation ξ = (ω, v) at ξ = 0, compiled: :class:`SurfaceResiduals` without its Python
+    side. Each assigned contact (facets (n,) int, -1: left out) lands walking from its facet,
+    which ``facets`` then holds; rows (p − q)/σ_x of the used contacts first, then (ν − ν*)/σ_n,
+    written to e (6 n',) and J (6 n', 6). topology : the arrays of model.surface.SurfaceTopology
+    (fv, points, edge_nbr, edge_convex, vf_ptr, vf, vertex_convex). -> χ²_S (the sum of the
+    landing costs)"""
+    fv, vpos, edge_nbr, edge_convex, vf_ptr, vf, vertex_convex = topology
+    n = len(facets)
+    p, nu = np.empty((n, 3)), np.empty((n, 3))
+    for i in range(n):
+        p[i] = np.array(object_point(R, t, points[i]))
+        nu[i] = np.array(object_normal(R, finger_normals[i]))
+    cost, kind, q, cone = np.zeros(n), np.zeros(n, np.int64), np.zeros((n, 3)), np.zeros((n, 3))
+    pcode, pdir, ncode, arc = np.zeros(n, np.int64), np.zeros((n, 3)), np.zeros(n, np.int64), np.zeros((n, 2, 3))
+    _land(fv, vpos, edge_nbr, edge_convex, vf_ptr, vf, vertex_convex, tri, normals, valid, p, nu,
+          1.0 / sigma_position**2, 1.0 / sigma_normal**2, cost, facets, kind, q, cone, pcode, pdir, ncode, arc)
+    used = 0
+    for i in range(n):
+        used += facets[i] >= 0
+    row, total = 0, 0.0
+    for i in range(n):
+        if facets[i] < 0:
+            continue
+        total += cost[i]
+        Pp = _position_rows(pcode[i], pdir[i])
+        Pn = _normal_rows(nu[i], cone[i], ncode[i], arc[i])
+        dp = np.zeros((3, 6))
+        dp[:, :3] = hat3(p[i])  # p = Exp(ω)ᵀ p₀ − v, ν = Exp(ω)ᵀ ν₀: [p]×, -I and [ν]×, 0 at ξ = 0
+        dp[0, 3], dp[1, 4], dp[2, 5] = -1.0, -1.0, -1.0
+        Jp = Pp @ dp / sigma_position
+        Jn = (Pn @ hat3(nu[i])) / sigma_normal
+        for a in range(3):
+            e[3 * row + a] = (p[i, a] - q[i, a]) / sigma_position
+            e[3 * (used + row) + a] = (nu[i, a] - cone[i, a]) / sigma_normal
+            for c in range(6):
+                J[3 * row + a, c] = Jp[a, c]
+                J[3 * (used + row) + a, c] = Jn[a, c] if c < 3 else 0.0
+        row += 1
+    return total
+
+
+@numba.njit(cache=True)
+def _position_rows(code, direction):
+    """:func:`_position_projector` of one contact, compiled. -> (3, 3)"""
+    outer = np.outer(direction, direction)
+    if code == 1:
+        return np.eye(3) - outer
+    if code == 2:
+        return outer
+    return np.eye(3)
+
+
+@numba.njit(cache=True)
+def _normal_rows(nu, cone, code, arc):
+    """:func:`_normal_projector` of one contact, compiled. -> (3, 3)"""
+    if code == 2:
+        return np.zeros((3, 3))
+    if code != 1:
+        return np.eye(3)
+    w = np.cross(arc[0], arc[1])
+    w = w / np.sqrt(w @ w)
+    plane = np.eye(3) - np.outer(w, w)
+    m = plane @ nu
+    tangent = np.eye(3) - np.outer(cone, cone)
+    return np.eye(3) - tangent @ plane / np.sqrt(m @ m)

@@ -154,3 +154,13 @@ def log(T):
     out = np.empty((len(T), 6))
     _log_batch(T, out)
     return out
+
+
+@njit(cache=True)
+def retract3(R, t, xi):
+    """:func:`retract` of one pose inside compiled kernels: R Exp(ω), t + R Exp(ω) v.
+    R (3, 3), t (3,), xi (6,) -> (R (3, 3), t (3,))"""
+    T = np.empty((4, 4))
+    _exp_into(xi[0], xi[1], xi[2], 0.0, 0.0, 0.0, T)
+    turned = R @ np.ascontiguousarray(T[:3, :3])
+    return turned, t + turned @ xi[3:]

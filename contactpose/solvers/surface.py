@@ -4,8 +4,8 @@ A hypothesis is posed on its facets' planes. On a curved region, or with a conta
 edge or vertex, a contact belongs to a neighbouring facet, or to an edge whose normal cone
 holds its normal, and the plane pose is biased. Here each contact lands on the feature of
 least whitened cost near its facet (costs.surface.land), and the pose minimises χ²_S of
-costs.surface, the features found again at every evaluation (scipy.optimize.least_squares,
-Levenberg–Marquardt), from a continuation in σ_x (:data:`CONTINUATION`).
+costs.surface, the features found again at every evaluation (a compiled Levenberg–Marquardt on
+the rows of costs.surface.surface_rows), from a continuation in σ_x (:data:`CONTINUATION`).
 """
 
 from __future__ import annotations
@@ -14,11 +14,11 @@ from functools import partial
 
 import gtsam
 import numpy as np
-from scipy.optimize import least_squares
+from numba import njit
 
 from contactpose.costs.frame import object_frame
-from contactpose.costs.surface import SurfaceResiduals, face_costs, landing, surface_residuals
-from contactpose.geometry.se3 import retract
+from contactpose.costs.surface import SurfaceResiduals, face_costs, landing, surface_residuals, surface_rows
+from contactpose.geometry.se3 import retract3
 from contactpose.options import outlier_penalty
 
 #: Residual evaluations of one stage of a surface fit.
@@ -60,12 +60,53 @@ def surface_fit(model, contacts, R, t, facets, tolerance):
 
 
 def _stage(model, contacts, R, t, start, tolerance, widen):
-    """One least-squares stage of the surface fit with σ_x times ``widen``. -> (R, t)"""
-    problem = SurfaceResiduals(model, contacts, R, t, start, tolerance, widen)
-    fit = least_squares(problem.residuals, np.zeros(6), jac=problem.jacobian, method="lm", x_scale="jac",
-                        xtol=XTOL, ftol=XTOL, max_nfev=MAX_EVALUATIONS)
-    R, t = retract(R[None], t[None], fit.x[None])
-    return R[0], t[0]
+    """One least-squares stage of the surface fit with σ_x times ``widen``: compiled
+    Levenberg–Marquardt (:func:`_lm`) on χ²_S's rows (costs.surface.surface_rows). -> (R, t)"""
+    topology = model.topology
+    arrays = (topology.fv, topology.points, topology.edge_nbr, topology.edge_convex, topology.vf_ptr, topology.vf,
+              topology.vertex_convex)
+    return _lm(np.ascontiguousarray(R, dtype=np.float64), np.ascontiguousarray(t, dtype=np.float64),
+               np.ascontiguousarray(contacts.points), np.ascontiguousarray(contacts.finger_normals),
+               np.asarray(start, dtype=np.int64).copy(), arrays, np.ascontiguousarray(model.triangles),
+               np.ascontiguousarray(model.planes.normals), np.asarray(model.planes.valid, dtype=np.bool_),
+               widen * tolerance.position_noise, tolerance.normal_noise, MAX_EVALUATIONS, XTOL)
+
+
+@njit(cache=True)
+def _lm(R, t, points, finger_normals, facets, topology, tri, normals, valid, sx, sn, max_evaluations, tol):
+    """Levenberg–Marquardt with diagonal (Marquardt) damping on χ²_S from (R, t), each step the
+    retraction of geometry.se3 and the contacts landing again from where they last landed;
+    stops when χ²_S falls by less than ``tol`` of itself, the step by less than ``tol`` of the
+    pose, or after ``max_evaluations``. -> (R, t)"""
+    m = 0
+    for f in facets:
+        m += 6 * (f >= 0)
+    e, J, e_try, J_try = np.empty(m), np.empty((m, 6)), np.empty(m), np.empty((m, 6))
+    cost = surface_rows(R, t, points, finger_normals, facets, topology, tri, normals, valid, sx, sn, e, J)
+    lam, evaluations = 1e-3, 1
+    while evaluations < max_evaluations and cost > 0.0:
+        H, g = J.T @ J, J.T @ e
+        A = H.copy()
+        for a in range(6):
+            A[a, a] += lam * max(H[a, a], 1e-30)
+        step = -np.linalg.solve(A, g)
+        R_try, t_try = retract3(R, t, step)
+        landed = facets.copy()
+        cost_try = surface_rows(R_try, t_try, points, finger_normals, landed, topology, tri, normals, valid, sx, sn,
+                                e_try, J_try)
+        evaluations += 1
+        if cost_try < cost:
+            small = cost - cost_try <= tol * cost or np.sqrt(step @ step) <= tol
+            R, t, facets[:] = R_try, t_try, landed
+            e, J, e_try, J_try, cost = e_try, J_try, e, J, cost_try
+            lam = max(lam * 0.1, 1e-12)
+            if small:
+                break
+        else:
+            lam *= 10.0
+            if lam > 1e12:
+                break
+    return R, t
 
 
 def needs_surface(model, contacts, R, t, facets, tolerance):

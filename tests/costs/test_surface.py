@@ -234,6 +234,33 @@ def test_surface_jacobian_matches_finite_differences(name):
     assert {(surface.FACE, 0), (surface.EDGE, 1), (surface.VERTEX, 2)} <= checked, checked
 
 
+@pytest.mark.parametrize("name", ["rock1k", "box"])
+def test_compiled_surface_rows_equal_the_residuals_and_jacobian_at_the_pose(name):
+    """surface_rows, the compiled rows the fit steps with, against SurfaceResiduals (numpy, its
+    Jacobian checked by central differences above) at ξ = 0: the same residuals, the same
+    Jacobian and the same landing, at faces, edges and vertices; χ²_S is the rows' square sum."""
+    model = ObjectModel.from_mesh(objects.load(name))
+    rng = np.random.default_rng(9)
+    tol = Tolerance.from_noise(0.002 * model.diameter, 2.0)
+    topo = model.topology
+    arrays = (topo.fv, topo.points, topo.edge_nbr, topo.edge_convex, topo.vf_ptr, topo.vf, topo.vertex_convex)
+    kinds = set()
+    for _ in range(12):
+        pose, noisy, got = _noisy_edge_grasp(model, rng, tol)
+        reference = SurfaceResiduals(model, noisy, pose[:3, :3], pose[:3, 3], got.facets, tol, 1.0)
+        e, J = np.empty(24), np.empty((24, 6))
+        facets = np.asarray(got.facets, dtype=np.int64).copy()
+        chi2 = surface.surface_rows(pose[:3, :3].copy(), pose[:3, 3].copy(), noisy.points, noisy.finger_normals, facets,
+                                    arrays, model.triangles, model.planes.normals, model.planes.valid,
+                                    tol.position_noise, tol.normal_noise, e, J)
+        np.testing.assert_allclose(e, reference.residuals(np.zeros(6)), rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(J, reference.jacobian(np.zeros(6)), rtol=1e-9, atol=1e-9 * np.abs(J).max())
+        assert np.array_equal(facets, reference.landed.facet)
+        assert chi2 == pytest.approx(e @ e, rel=1e-12)
+        kinds |= set(reference.landed.kind.tolist())
+    assert {surface.FACE, surface.EDGE} <= kinds, kinds
+
+
 def test_has_regions_only_when_patches_grown_above_the_coplanar_tolerance_are_searched():
     sphere = objects.load("sphere")
     assert ObjectModel.from_mesh(sphere, patch_tol_deg=25.0).has_regions      # 46 regions of 320 facets

@@ -49,3 +49,14 @@ def test_retract_agrees_with_the_pose3_exponential_to_first_order():
 def test_inverse_of_a_rigid_transform():
     T = gtsam.Pose3(gtsam.Rot3.Expmap([0.3, -0.2, 1.1]), [0.1, 0.4, -2.0]).matrix()
     np.testing.assert_allclose(se3.inverse(T) @ T, np.eye(4), atol=1e-14)
+
+
+def test_compiled_retraction_equals_the_numpy_one():
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        R = gtsam.Rot3.Expmap(rng.normal(size=3)).matrix()
+        t, xi = rng.normal(size=3), rng.normal(size=6) * np.r_[[0.7] * 3, [0.2] * 3]
+        R1, t1 = se3.retract3(R, t, xi)
+        R2, t2 = se3.retract(R[None], t[None], xi[None])
+        np.testing.assert_allclose(R1, R2[0], atol=1e-14)
+        np.testing.assert_allclose(t1, t2[0], atol=1e-14)
