@@ -19,6 +19,7 @@ import numpy as np
 
 from contactpose import paper, stages
 from contactpose.contacts import Contacts, Tolerance
+from contactpose.diagnosis import diagnose as diagnose_answer
 from contactpose.errors import ContactPoseError, ContactsError, check_count
 from contactpose.options import DEFAULT_POSITION_NOISE_FRAC, DEFAULT_REFINE, KEEP, METHODS, SOLVERS, check_robust
 from contactpose.progress import Deadline
@@ -38,7 +39,8 @@ __all__ = ["DEFAULT_TIME_LIMIT", "localize", "warm_up"]
 def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prior=None,
              method="fast", solver=None, top=None, model_error=0.0, max_outliers=0, robust="huber",
              refine=DEFAULT_REFINE, samples=0, seed=None, sample_top=1, finger_radius=None,
-             time_limit=DEFAULT_TIME_LIMIT, progress=None, distinct=True, surface=False, keep="fitting", tree=None):
+             time_limit=DEFAULT_TIME_LIMIT, progress=None, distinct=True, surface=False, keep="fitting", tree=None,
+             diagnose=True):
     """Find every admissible finger-to-facet assignment and the object pose behind each.
 
     model : ObjectModel; contacts : Contacts (world frame); position_noise : per-axis σ of
@@ -78,6 +80,10 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
     noise (a search.tree.SearchTree; "fast"): only the pairs of the new contacts with the others
     are queried and its tuples grow by them, the same tree as a search of all (TouchSession
     uses it). ``result.tree`` is this search's tree (None for "paper", or when the time limit cut it).
+    diagnose : for an empty or poor answer ("fast"), test its likely causes by localizing again
+    with the input changed, within what is left of time_limit, and name the one that holds in
+    ``result.diagnosis`` and the hint (contactpose.diagnosis); False skips the tests
+    (``result.diagnosis`` None), for sweeps that only count statuses.
     """
     method, solver = _check_options(method, solver, top, contacts, prior, tree)
     if keep not in KEEP:
@@ -132,8 +138,12 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
                                                         np.random.default_rng(seed), prior=prior, robust=robust,
                                                         top=sample_top, surface=surface or model.has_regions))
     timing["total"] = time.perf_counter() - start
+    diagnosis = None
+    if diagnose:
+        hint, diagnosis = diagnose_answer(model, contacts, tolerance, status, hint, arrays, method=method,
+                                          max_outliers=max_outliers, prior=prior, deadline=deadline, timing=timing)
     return Result(status, hypotheses, timing, method, solver, tolerance, hint, num_hypotheses=num, classes=classes,
-                  num_assignments=assignments, tree=grown)
+                  num_assignments=assignments, tree=grown, diagnosis=diagnosis)
 
 
 @contextmanager

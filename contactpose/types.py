@@ -124,7 +124,7 @@ class Hypothesis:
     """One assignment of fingers to facets and the pose behind it.
 
     facets : (n,) int; pose : (4, 4) T_world_object; cost : ranking cost (χ² for
-    "fast", eq. (7) ℒ for "paper"); residuals : (n, 5) columns normal x/y/z (world),
+    "fast", -log Laplace evidence with the factor graph, eq. (7) ℒ for "paper"); residuals : (n, 5) columns normal x/y/z (world),
     offset (point-to-plane; the eq. (7) offset for "paper"), lateral (outside the triangle);
     chi2 : whitened fit; underdetermined : bool; free_translation : (k, 3) world
     directions; free_rotation : (3,) world axis or None; outliers : fingers left
@@ -207,10 +207,13 @@ class HypothesisArrays:
                                 pick(self.probability))
 
     def merged(self, other):
-        """Both sets of hypotheses in one ranking (by cost)."""
+        """Both sets of hypotheses in one ranking (by cost); covariance and probability are
+        kept where both sets have them."""
+        both = (lambda a, b: None if a is None or b is None else np.concatenate([a, b]))
         joined = HypothesisArrays(*(np.concatenate([a, b]) for a, b in zip(
             (self.facets, self.poses, self.cost, self.chi2, self.residuals),
-            (other.facets, other.poses, other.cost, other.chi2, other.residuals))), self.fit.concat(other.fit))
+            (other.facets, other.poses, other.cost, other.chi2, other.residuals))), self.fit.concat(other.fit),
+            both(self.covariance, other.covariance), both(self.probability, other.probability))
         return joined.take(np.argsort(joined.cost, kind="stable"))
 
     def widened(self, fingers, n, penalty):
@@ -254,13 +257,62 @@ class HypothesisList(Sequence):
         )
 
 
+#: Causes of an empty or poor answer that a :class:`Diagnosis` names (contactpose.diagnosis
+#: tests them in this order): contacts in other units than the mesh; the model's facet
+#: normals pointing inward (its winding, recorded when it was built); the contacts' normals
+#: reversed; one finger off the object (the others fit); noise stated smaller than the fit
+#: needs; none of these ("unexplained").
+CAUSE_UNITS = "units"
+CAUSE_MODEL_NORMALS = "model_normals_inward"
+CAUSE_CONTACT_NORMALS = "contact_normals_flipped"
+CAUSE_FINGER_OFF = "finger_off"
+CAUSE_NOISE = "noise_too_small"
+CAUSE_UNEXPLAINED = "unexplained"
+CAUSES = (CAUSE_UNITS, CAUSE_MODEL_NORMALS, CAUSE_CONTACT_NORMALS, CAUSE_FINGER_OFF, CAUSE_NOISE, CAUSE_UNEXPLAINED)
+
+
+@dataclass(frozen=True)
+class Diagnosis:
+    """Why an answer came back empty or poor: the cause that a test confirmed (one of CAUSES)
+    and what to change, each suggestion checked by localizing again with it.
+
+    cause : one of CAUSES; message : one line, also carried by the Result's hint;
+    finger : the finger off the object (CAUSE_FINGER_OFF); max_outliers : the value that
+    lets localize fit (CAUSE_FINGER_OFF); scale : multiply the contact points by this to
+    express them in the mesh's units (CAUSE_UNITS); position_noise (length units) and
+    normal_noise_deg : noise at which localize fits (CAUSE_NOISE); tested : the causes
+    tested, in order.
+    """
+
+    cause: str
+    message: str
+    finger: int | None = None
+    max_outliers: int | None = None
+    scale: float | None = None
+    position_noise: float | None = None
+    normal_noise_deg: float | None = None
+    tested: tuple = ()
+
+    def __post_init__(self):
+        if self.cause not in CAUSES:
+            raise ValueError(f"cause must be one of {CAUSES}, got {self.cause!r}")
+
+    def to_dict(self):
+        """This diagnosis as JSON (``$defs/diagnosis`` of contactpose/data/result.schema.json)."""
+        return {"cause": self.cause, "message": self.message, "finger": self.finger,
+                "max_outliers": self.max_outliers, "scale": self.scale, "position_noise": self.position_noise,
+                "normal_noise_deg": self.normal_noise_deg, "tested": list(self.tested)}
+
+
 @dataclass
 class Result:
     """The outcome of :func:`localize`.
 
     status : one of options.STATUSES;
     hypotheses : ranked list, best first; timing : seconds per stage; hint : why, when not ok;
-    tree : the search's tree (a search.tree.SearchTree), for ``localize(..., tree=)`` to extend.
+    tree : the search's tree (a search.tree.SearchTree), for ``localize(..., tree=)`` to extend;
+    diagnosis : for an empty or poor answer (no_hypothesis, poor_fit) of the default method,
+    the :class:`Diagnosis` of its cause; None otherwise.
     """
 
     status: str
@@ -275,6 +327,7 @@ class Result:
     extra: dict = field(default_factory=dict)
     num_assignments: int | None = None
     tree: object = field(default=None, repr=False, compare=False)
+    diagnosis: Diagnosis | None = None
 
     def __post_init__(self):
         if self.num_assignments is None:
@@ -289,7 +342,8 @@ class Result:
         """The localize JSON (contactpose/data/result.schema.json, SCHEMA_VERSION): ``units``,
         ``timing_ms`` (ms; ``timing`` stays in seconds), ``num_hypotheses`` (all found, one per
         distinct pose), ``num_assignments`` (the facet assignments behind them, near-copies
-        included) and ``num_returned`` (listed, after ``top``), ``best`` (hypotheses[0] or null)."""
+        included) and ``num_returned`` (listed, after ``top``), ``best`` (hypotheses[0] or null),
+        ``diagnosis`` (Diagnosis.to_dict() or null)."""
         hypotheses = [h.to_dict() for h in self.hypotheses]
         out = {
             "schema_version": SCHEMA_VERSION,
@@ -307,6 +361,7 @@ class Result:
             "best": None if self.best is None else self.best.to_dict(),
             "classes": [c.to_dict() for c in self.classes],
             "hypotheses": hypotheses,
+            "diagnosis": None if self.diagnosis is None else self.diagnosis.to_dict(),
         }
         if self.extra:
             out["extra"] = dict(self.extra)
@@ -323,6 +378,8 @@ class Result:
                  f"method={self.method!r}"]
         if self.solver != ("closed-form" if self.method == "fast" else "lm"):
             parts.append(f"solver={self.solver!r}")
+        if self.diagnosis is not None:
+            parts.append(f"cause={self.diagnosis.cause!r}")
         if total is not None:
             parts.append(f"{1000.0 * total:.2f} ms")
         return f"Result({', '.join(parts)})"

@@ -36,6 +36,7 @@ CASES = {
     "samples": ("example", ["--samples", "200", "--seed", "0"]),
     "outliers": ("five", [*NOISE_ARGS, "--max-outliers", "1"]),
     "outliers_top1": ("five", [*NOISE_ARGS, "--max-outliers", "1", "--top", "1"]),
+    "finger_off": ("five", [*NOISE_ARGS]),
     "no_hypothesis": ("millimetres", []),
     "underdetermined": ("two", []),
     "paper": ("example", ["--method", "paper"]),
@@ -250,6 +251,63 @@ def test_tolerance_units(case):
     assert tol["distance"] == result.tolerance.distance
     assert tol["angle_deg"] == pytest.approx(np.degrees(result.tolerance.angle))
     assert tol["normal_noise_deg"] == pytest.approx(np.degrees(result.tolerance.normal_noise))
+
+
+def test_diagnosis_is_written_for_an_empty_or_poor_answer(case):
+    """null for an answer that fits; for an empty or poor one the Result's Diagnosis, its
+    message in the hint."""
+    name, text, result, stdout = case
+    written = strict_json(text)["diagnosis"]
+    if result.status not in ("no_hypothesis", "poor_fit") or result.method != "fast":
+        assert written is None and result.diagnosis is None
+        return
+    assert written == result.diagnosis.to_dict() and written["message"] in result.hint
+    assert f"cause: {written['cause']}" in stdout
+    if name == "finger_off":  # finger 2 of five lifted 2 cm off its facet
+        assert (written["cause"], written["finger"], written["max_outliers"]) == ("finger_off", 2, 1)
+
+
+def _mutations(data):
+    """(what is wrong, a copy of the valid localize JSON ``data`` with that defect)."""
+    def changed(edit):
+        copy = json.loads(json.dumps(data))
+        edit(copy)
+        return copy
+    hypothesis = lambda d: d["hypotheses"][0]  # noqa: E731
+    return [
+        ("an unknown key", changed(lambda d: d.update(comment="hand-edited"))),
+        ("a required key missing", changed(lambda d: d.pop("tolerance"))),
+        ("another schema version", changed(lambda d: d.update(schema_version="1.1"))),
+        ("an unknown status", changed(lambda d: d.update(status="great"))),
+        ("a time in seconds as text", changed(lambda d: d["timing_ms"].update(total="0.4 s"))),
+        ("a negative time", changed(lambda d: d["timing_ms"].update(total=-1.0))),
+        ("a facet index below -1", changed(lambda d: hypothesis(d)["facets"].__setitem__(0, -2))),
+        ("a pose of 3 rows", changed(lambda d: hypothesis(d).update(pose=hypothesis(d)["pose"][:3]))),
+        ("a residual row of 4 columns", changed(lambda d: hypothesis(d)["residuals"][0].pop())),
+        ("an unknown cause", changed(lambda d: d.update(diagnosis={
+            "cause": "gremlins", "message": "", "finger": None, "max_outliers": None, "scale": None,
+            "position_noise": None, "normal_noise_deg": None, "tested": []}))),
+        ("a diagnosis without its fields", changed(lambda d: d.update(diagnosis={"cause": "units"}))),
+    ]
+
+
+def test_the_result_schema_rejects_bad_documents(run_case):
+    """Each defect of a valid localize JSON makes it invalid, and the validator says where."""
+    valid = strict_json(run_case("plain")[1])
+    validate(valid, "result")
+    validator = jsonschema.Draft202012Validator(output.load_schema("result"))
+    for what, bad in _mutations(valid):
+        assert not validator.is_valid(bad), what
+
+
+@pytest.mark.parametrize("kind", output.SCHEMA_KINDS)
+def test_every_schema_rejects_unknown_keys_and_missing_ones(kind):
+    schema = output.load_schema(kind)
+    validator = jsonschema.Draft202012Validator(schema)
+    assert schema["additionalProperties"] is False
+    errors = list(validator.iter_errors({"schema_version": SCHEMA_VERSION, "surprise": 1}))
+    assert any(e.validator == "additionalProperties" for e in errors), kind
+    assert any(e.validator == "required" for e in errors), kind
 
 
 # ---------------------------------------------------------------- other outputs ---

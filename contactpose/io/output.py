@@ -21,7 +21,7 @@ from importlib import resources
 
 import numpy as np
 
-from contactpose.schema import SCHEMA_VERSION
+from contactpose.schema import SCHEMA_VERSION, json_number
 
 SCHEMA_KINDS = ("result", "touch", "scan_report", "bench", "track")
 #: Units of the next-touch JSON: lengths in mesh units, information in bits.
@@ -30,6 +30,8 @@ TOUCH_UNITS = {"length": "mesh", "information": "bits"}
 SCAN_UNITS = {"length": "cloud", "time": "ms", "relative": "percent of diameter"}
 #: Units of the track JSON: lengths in mesh units, angles in degrees, covariances in radians (rotation first).
 TRACK_UNITS = {"length": "mesh", "angle": "deg", "covariance_rotation": "rad"}
+#: A track step's errors against its true pose: raw, and modulo the object's symmetry.
+TRACK_ERRORS = ("rot_err_deg", "trans_err", "rot_err_sym_deg", "trans_err_sym")
 #: Units of the bench report: lengths in mesh units, times in ms, memory in MiB, angles in degrees.
 BENCH_UNITS = {"length": "mesh", "time": "ms", "memory": "MiB", "angle": "deg"}
 
@@ -61,13 +63,15 @@ def next_touch_dict(result, touch):
     }
 
 
-def track_dict(status, rows, tracks, association=None):
-    """The track JSON: the first grasp's localize status, the best track's pose at every step
-    (with its error where the sequence gives the true pose), and the tracks left at the end.
+def track_dict(status, rows, tracks, association=None, symmetry=""):
+    """The track JSON: the first grasp's localize status, the object's symmetry, the best
+    track's pose at every step (with its error where the sequence gives the true pose, raw and
+    modulo the symmetry), and the tracks left at the end.
 
-    rows : [dict(step, pose (4, 4), tracks, reseeds, score, rot_err_deg, trans_err)]; tracks : TrackSet;
-    association : None, or each final track's association covariance (6, 6), written as its
-    ``association_covariance``.
+    rows : [dict(step, pose (4, 4), tracks, reseeds, score, rot_err_deg, trans_err, rot_err_sym_deg,
+    trans_err_sym)]; tracks : TrackSet; association : None, or each final track's association
+    covariance (6, 6), written as its ``association_covariance``; symmetry : the object's
+    symmetry group in words (model.symmetry.Symmetry.describe), "" when it has none.
     """
     finals = [{"pose": t.pose.tolist(), "score": t.score, "covariance": t.covariance.tolist()} for t in tracks.tracks]
     for final, spread in zip(finals, association or []):
@@ -76,10 +80,16 @@ def track_dict(status, rows, tracks, association=None):
         "schema_version": SCHEMA_VERSION,
         "units": dict(TRACK_UNITS),
         "status": status,
+        "symmetry": symmetry,
         "steps": [{"step": r["step"], "pose": r["pose"].tolist(), "tracks": r["tracks"], "reseeds": r["reseeds"],
-                   "score": r["score"], "rot_err_deg": r["rot_err_deg"], "trans_err": r["trans_err"]} for r in rows],
+                   "score": r["score"], **{k: _number_or_none(r[k]) for k in TRACK_ERRORS}} for r in rows],
         "tracks": finals,
     }
+
+
+def _number_or_none(x):
+    """None stays None (no true pose), numbers become JSON numbers (NaN and inf: None)."""
+    return None if x is None else json_number(x)
 
 
 def scan_report_dict(report):

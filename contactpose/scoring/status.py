@@ -16,6 +16,9 @@ In this order:
 
 Placements that differ by a symmetry of the object are one pose class (ADD-S), and the
 hint says when the object has such symmetries (model.symmetry).
+
+The hint of an empty or poor answer (DIAGNOSED) ends in the likely reasons (:func:`reason`);
+contactpose.diagnosis tests them and puts the cause that holds in their place.
 """
 
 from __future__ import annotations
@@ -24,6 +27,15 @@ import numpy as np
 
 from contactpose.model.symmetry import symmetries
 from contactpose.options import AMBIGUOUS_PROBABILITY, fit_threshold
+
+#: The statuses of an empty or poor answer, whose cause localize diagnoses.
+DIAGNOSED = ("no_hypothesis", "poor_fit")
+#: The reasons a hint gives for an empty answer when no likely mistake stands out.
+NO_HYPOTHESIS_REASONS = "noise too small, wrong units, or a finger off the object?"
+#: The reasons a hint gives for a best hypothesis that does not fit within noise.
+POOR_FIT_REASONS = "more noise than stated, a finger off the object, or a model that differs from the object"
+#: Contacts spread up to this many times the diameter may be one finger off the object.
+FINGER_OFF_RATIO = 2.0
 
 
 def status(model, contacts, arrays, classes, tolerance, fits=None, truncated=False):
@@ -42,8 +54,7 @@ def status(model, contacts, arrays, classes, tolerance, fits=None, truncated=Fal
     best_fits = bool(fits[0]) if fits is not None else any(0 in c.members for c in classes)
     if not best_fits:
         return "poor_fit", (f"the best hypothesis does not fit within noise (chi2 {arrays.chi2[0]:.3g} > "
-                            f"{fit_threshold(contacts.n):.3g}): more noise than stated, a finger off the object, "
-                            "or a model that differs from the object")
+                            f"{fit_threshold(contacts.n):.3g}): {POOR_FIT_REASONS}")
     if arrays.fit.underdetermined[0] and (arrays.covariance is None or not np.isfinite(arrays.covariance[0]).all()):
         return "underdetermined", ("the hypothesised facet normals leave pose directions free; see "
                                    "free_translation / free_rotation")
@@ -73,20 +84,34 @@ def symmetry_note(model):
 
 def no_hypothesis_hint(model, contacts, tolerance):
     """Why nothing may have matched: contacts in other units, flipped normals, or tolerances."""
+    why = reason("no_hypothesis", model, contacts, tolerance)
+    if why != NO_HYPOTHESIS_REASONS:
+        return why
+    return (f"no facet tuple matches within tolerance (distance ±{tolerance.distance:.3g}, "
+            f"angle ±{np.degrees(tolerance.angle):.3g}°): {why}")
+
+
+def reason(status, model, contacts, tolerance):
+    """The likely reasons that the hint of an empty or poor answer (``status`` in DIAGNOSED)
+    ends in: contacts spread wider than the object, normals that all point away from the
+    contacts, or the generic ones."""
+    if status == "poor_fit":
+        return POOR_FIT_REASONS
     spread = contacts.spread
     if spread > model.diameter + tolerance.distance:
         return units_message(spread, model.diameter)
     if normals_flipped(contacts):
         return ("all normals point away from the contacts' centroid: finger_normal points into the object "
                 "(give object_normal for outward normals)")
-    return (f"no facet tuple matches within tolerance (distance ±{tolerance.distance:.3g}, "
-            f"angle ±{np.degrees(tolerance.angle):.3g}°): noise too small, wrong units, or a finger off the object?")
+    return NO_HYPOTHESIS_REASONS
 
 
 def units_message(spread, diameter):
     """One line for contacts spread wider than the object can be."""
     ratio = spread / diameter
     guess = " millimetres vs metres?" if 100 <= ratio < 10_000 else " same units?"
+    if ratio < FINGER_OFF_RATIO:
+        guess += " (or a finger off the object)"
     return f"contacts span {spread:.4g} but the model is {diameter:.4g} across ({ratio:.3g} times):{guess}"
 
 
