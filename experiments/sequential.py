@@ -26,11 +26,15 @@ Per touch, three estimates of the current pose:
   poses of the first grasp, told the hand motions and the slip sigmas, with a memory of the
   last 4 contacts; its estimate.
 
-Rotation error (°) and translation error (mm) per touch, and, on the track method's rows, the
+Rotation error (°) and translation error (mm) per touch, raw (``rot_deg``, ``trans_mm``) and
+modulo the object's symmetry (``rot_sym_deg``, ``trans_sym_mm``: against the nearest of the
+poses that place the surface as the truth does, model.symmetry; equal to the raw ones on an
+object without symmetry), and, on the track method's rows, the
 number of tracks held after it (column ``tracks``) and the reseeds so far (``reseeds``); a track is lost when the last touch's
 error exceeds ``lost_deg`` or ``lost_frac`` of the diameter. The pose counts as determined from the first touch after
 which one track is left (the session's status "ok"), and the summary gives the worst touch's
-median over all touches and over those once determined. Writes
+median over all touches and over those once determined; the summary's errors are those modulo
+the symmetry (the raw ones for rows written before those columns). Writes
 results/sequential/steps.csv (one row per sequence, touch and method) and summary.md;
 ``--methods`` runs some of the methods and keeps the other methods' rows of steps.csv (the
 sequences are drawn from their own stream, so they are the same)::
@@ -89,6 +93,7 @@ from contactpose.geometry import metrics
 from contactpose.geometry.sampling import perturb_normals
 from contactpose.harness import sweep
 from contactpose.model.object_model import merged_mesh
+from contactpose.model.symmetry import symmetry
 from contactpose.peers import MemoryParticleFilter, random_touch, sample_surface
 from contactpose.sim import fingertip, objects
 from contactpose.sim import grasps as simulate
@@ -148,7 +153,7 @@ def sequence(model, mesh, rng, s, seq, methods=METHODS, surface=None):
     if "pf" in methods:
         pf = MemoryParticleFilter(model, surface, [p for _, p in starts], first, np.random.default_rng([s["seed"], seq]),
                                   particles=PARTICLES, **noise)
-    rows, last = [], first
+    rows, last, group = [], first, symmetry(model)
     for k in range(1, s["steps"] + 1):
         delta = motion(rng, s["hand_rot_deg"], s["hand_trans_frac"] * d)
         X = delta @ X @ motion(rng, s["slip_deg"], s["slip_trans_frac"] * d)
@@ -163,7 +168,9 @@ def sequence(model, mesh, rng, s, seq, methods=METHODS, surface=None):
             T = est[m]
             rot = np.nan if T is None else metrics.rotation_error_deg(T, X)
             trans = np.nan if T is None else 1e3 * metrics.translation_error(T, X)
-            rows.append(dict(sequence=seq, touch=k, method=m, rot_deg=rot, trans_mm=trans, ms=ms[m],
+            rot_sym, trans_sym = (np.nan, np.nan) if T is None else group.errors(T, X)
+            rows.append(dict(sequence=seq, touch=k, method=m, rot_deg=rot, trans_mm=trans, rot_sym_deg=float(rot_sym),
+                             trans_sym_mm=1e3 * float(trans_sym), ms=ms[m],
                              tracks=len(tracks.tracks) if m == "track" else "",
                              reseeds=tracks.reseeds if m == "track" else ""))
         last = contacts
@@ -185,25 +192,28 @@ def _estimate(method, model, tracks, pf, last, contacts, hand, noise):
 
 
 def summary(rows, d, s):
-    """Per method: error over all touches (median, p90), the worst touch's median (over the
-    sequences), the same over the touches once the pose is determined (:func:`determined`),
-    the share of lost tracks, and the time per touch (median, p95)."""
+    """Per method: error modulo the object's symmetry over all touches (median, p90), the
+    worst touch's median (over the sequences), the same over the touches once the pose is
+    determined (:func:`determined`), the share of lost tracks, and the time per touch (median,
+    p95). Rows without the modulo-symmetry columns (written before them) give their raw errors."""
     lines = ["| method | touches | rotation median / p90 (°) | translation median / p90 (mm) | worst touch's median "
              "(° / mm) | once determined: touches, worst touch's median (° / mm) | lost | ms per touch median / p95 |",
              "|---|---:|---:|---:|---:|---:|---:|---:|"]
     since = determined(rows)
     for m in [m for m in METHODS if any(r["method"] == m for r in rows)]:
         sel = [r for r in rows if r["method"] == m]
-        rot, trans, ms, step = (np.array([float(r[c]) for r in sel]) for c in ("rot_deg", "trans_mm", "ms", "touch"))
+        rot, trans = (np.array([float(r.get(c) if str(r.get(c, "")) != "" else r[raw]) for r in sel])
+                      for c, raw in (("rot_sym_deg", "rot_deg"), ("trans_sym_mm", "trans_mm")))
+        ms, step = (np.array([float(r[c]) for r in sel]) for c in ("ms", "touch"))
         known = np.array([int(r["touch"]) >= since.get(int(r["sequence"]), np.inf) for r in sel], dtype=bool)
-        last = {r["sequence"]: r for r in sel}
-        lost = np.mean([not (float(r["rot_deg"]) <= s["lost_deg"] and float(r["trans_mm"]) <= 1e3 * s["lost_frac"] * d)
-                        for r in last.values()])
+        last = {r["sequence"]: (a, b) for r, a, b in zip(sel, rot, trans)}
+        lost = np.mean([not (a <= s["lost_deg"] and b <= 1e3 * s["lost_frac"] * d) for a, b in last.values()])
         lines.append(f"| {m} | {len(sel)} | {np.nanmedian(rot):.2f} / {np.nanpercentile(rot, 90):.2f} | "
                      f"{np.nanmedian(trans):.2f} / {np.nanpercentile(trans, 90):.2f} | "
                      f"{_worst_median(rot, trans, step)} | {known.sum()}, {_worst_median(rot[known], trans[known], step[known])} | "
                      f"{lost:.1%} of {len(last)} | {np.median(ms):.2f} / {np.percentile(ms, 95):.2f} |")
-    return "\n".join(lines + reseeded(rows))
+    return "\n".join(lines + ["", "Errors modulo the object's symmetry (model.symmetry; raw where it has none)."]
+                     + reseeded(rows))
 
 
 def reseeded(rows):

@@ -23,6 +23,7 @@ from contactpose.geometry.metrics import (
     pose_success,
     rms_displacement,
     rotation_error_deg,
+    symmetric_errors,
     translation_error,
 )
 from contactpose.geometry.raycast import Raycaster, raycaster
@@ -30,5 +31,5 @@ from contactpose.geometry.raycast import Raycaster, raycaster
 __all__ = ["SAME_CLASS_ADDS_FRAC", "Raycaster", "adds", "adds_many", "closest_point_triangle",
            "closest_points_on_triangles", "point_triangle_dist2", "point_triangle_distance", "pose_success",
            "raycaster", "rms_displacement", "rotation_error_deg", "segment_segment_dist2",
-           "segment_triangle_intersect", "translation_error", "triangle_pair_bounds", "triangle_pair_vertex_bounds",
+           "segment_triangle_intersect", "symmetric_errors", "translation_error", "triangle_pair_bounds", "triangle_pair_vertex_bounds",
            "triangle_triangle_dist2"]

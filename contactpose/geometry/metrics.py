@@ -1,4 +1,4 @@
-"""Pose error metrics: rotation and translation error, ADD-S, top-1 success."""
+"""Pose error metrics: rotation and translation error, raw and modulo a symmetry group, ADD-S, top-1 success."""
 
 from __future__ import annotations
 
@@ -22,6 +22,52 @@ def rotation_error_deg(T_est, T_true):
 def translation_error(T_est, T_true):
     """|t_est - t_true| in length units. T_* : (..., 4, 4) -> (...)"""
     return np.linalg.norm(T_est[..., :3, 3] - T_true[..., :3, 3], axis=-1)
+
+
+def symmetric_errors(T_est, T_true, rotations, axes=(), centre=None):
+    """Rotation error (degrees) and translation error (length units) of T_est against the
+    nearest of the poses that place the surface as T_true does: T_true G over the object's
+    symmetries G, the one of least rotation error.
+
+    T_est, T_true : (..., 4, 4), broadcast; rotations : (K, 4, 4) the symmetries G = [Q, c - Q c]
+    in the object frame (the identity among them); axes : (C, 3) unit axes through ``centre``
+    (3,; default the origin) about which every turn is a symmetry: C = 0 none; 1 an axis, each G then followed by
+    the turn about it that fits best (in closed form: the angle φ maximising tr(A Rot(a, φ)),
+    A = R_estᵀ R_true Q, is atan2(tr(A [a]×), tr A - aᵀ A a)); 2 or more, every rotation (the
+    error is then the centroid's displacement alone). -> (rotation (...), translation (...))
+    """
+    T_est, T_true = np.broadcast_arrays(np.asarray(T_est, dtype=np.float64), np.asarray(T_true, dtype=np.float64))
+    axes = np.asarray(axes, dtype=np.float64).reshape(-1, 3)
+    rotations = np.asarray(rotations, dtype=np.float64)
+    centre = np.zeros(3) if centre is None else np.asarray(centre, dtype=np.float64)
+    if len(axes) == 0 and len(rotations) == 1 and np.array_equal(rotations[0], np.eye(4)):  # no symmetry
+        return rotation_error_deg(T_est, T_true), translation_error(T_est, T_true)
+    if len(axes) >= 2:
+        Q = np.einsum("...ji,...jk->...ik", T_true[..., :3, :3], T_est[..., :3, :3])
+        return np.zeros(T_est.shape[:-2]), translation_error(T_est, T_true @ _about(Q, centre))
+    candidates = T_true[..., None, :, :] @ rotations  # (..., K, 4, 4)
+    if len(axes) == 1:
+        a = axes[0]
+        A = np.einsum("...ji,...kjl->...kil", T_est[..., :3, :3], candidates[..., :3, :3])
+        cross = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])  # [a]×
+        phi = np.arctan2(np.einsum("...ij,ji->...", A, cross),
+                         np.trace(A, axis1=-2, axis2=-1) - np.einsum("i,...ij,j->...", a, A, a))
+        turn = np.cos(phi)[..., None, None] * np.eye(3) + np.sin(phi)[..., None, None] * cross \
+            + (1.0 - np.cos(phi))[..., None, None] * np.outer(a, a)
+        candidates = candidates @ _about(turn, centre)
+    rot = rotation_error_deg(T_est[..., None, :, :], candidates)
+    best = np.argmin(rot, axis=-1)[..., None]
+    trans = translation_error(T_est[..., None, :, :], candidates)
+    return np.take_along_axis(rot, best, axis=-1)[..., 0], np.take_along_axis(trans, best, axis=-1)[..., 0]
+
+
+def _about(Q, centre):
+    """(..., 4, 4) [Q, c - Q c]: rotations Q (..., 3, 3) about ``centre`` (3,)."""
+    T = np.zeros(Q.shape[:-2] + (4, 4))
+    T[..., :3, :3] = Q
+    T[..., :3, 3] = centre - Q @ centre
+    T[..., 3, 3] = 1.0
+    return T
 
 
 def pose_success(T_est, T_true, diameter, rot_deg=SUCCESS_ROT_DEG, trans_frac=SUCCESS_TRANS_FRAC):

@@ -44,16 +44,15 @@ from functools import lru_cache
 
 import gtsam
 import numpy as np
-from scipy.stats import chi2
 
 from contactpose.contacts import Contacts, Tolerance
 from contactpose.costs.association import nearest_fit_facets
 from contactpose.costs.facet import kernel_params, pack_contacts
 from contactpose.costs.smooth import smooth_data, touch_chi2
 from contactpose.errors import ContactPoseError, check_count
-from contactpose.geometry.metrics import rotation_error_deg, translation_error
 from contactpose.geometry.se3 import inverse
-from contactpose.options import check_robust
+from contactpose.model.symmetry import symmetry
+from contactpose.options import check_robust, chi2_quantile
 from contactpose.solvers import factor_graph as fg
 from contactpose.solvers.surface import surface_factor
 from contactpose.types import PosePrior, check_rigid
@@ -525,9 +524,11 @@ class TrackSet:
     Each is a :class:`PoseTrack`, scored by its sequential χ² (:attr:`PoseTrack.score`: each
     touch's contact χ² just after its update, so a wrong hypothesis pays for every touch that
     it explains badly). After each touch, tracks whose pose coincides with a better one's
-    (rotation within ``merge_deg`` and translation within ``merge_frac`` of the diameter) are
-    merged into it, those more than ``prune_chi2`` above the best are dropped, and at most
-    ``max_tracks`` are kept. The starts are taken in their order until ``max_tracks`` distinct
+    modulo the object's symmetry (model.symmetry: rotation within ``merge_deg`` and
+    translation within ``merge_frac`` of the diameter, against the nearest of the poses that
+    place the surface as the better one does) are merged into it, so that the twins of one
+    placement on a symmetric object are one track; those more than ``prune_chi2`` above the
+    best are dropped, and at most ``max_tracks`` are kept. The starts are taken in their order until ``max_tracks`` distinct
     tracks are held after the first update, or START_TRIES · max_tracks starts were tried.
 
     model, contacts, tolerance : as for PoseTrack; starts : [(facets (n,) int, pose (4, 4))],
@@ -547,7 +548,7 @@ class TrackSet:
         self.history = [(contacts, None)]  # every touch: (Contacts in the world, checked hand motion or None)
         self.reseeds = 0
         self.max_tracks, self.prune_chi2 = check_count(max_tracks, "max_tracks", minimum=1), float(prune_chi2)
-        self.merge = (float(merge_deg), float(merge_frac) * model.diameter)
+        self.merge = (float(merge_deg), float(merge_frac) * model.diameter, symmetry(model))
         self.tracks, taken, tried = [], 0, min(len(starts), START_TRIES * self.max_tracks)
         while taken < tried and len(self.tracks) < self.max_tracks:
             more = starts[taken:min(tried, taken + self.max_tracks - len(self.tracks))]
@@ -644,13 +645,15 @@ class TrackSet:
 def surprise_threshold(n):
     """The χ² of a touch of n contacts above which no track explains it: χ²'s (1 - SURPRISE_P)
     quantile with 3 degrees of freedom per contact (22.5 for 2 contacts)."""
-    return float(chi2.ppf(1.0 - SURPRISE_P, 3 * n))
+    return chi2_quantile(1.0 - SURPRISE_P, 3 * n)
 
 
 def _coincide(a, b, merge):
-    """Whether poses a and b (..., 4, 4), broadcast, are one pose: rotation within merge[0]
-    degrees and translation within merge[1]. -> bool array"""
-    return (rotation_error_deg(a, b) <= merge[0]) & (translation_error(a, b) <= merge[1])
+    """Whether poses a and b (..., 4, 4), broadcast, are one pose modulo the symmetry
+    merge[2] (a model.symmetry.Symmetry): rotation within merge[0] degrees and translation
+    within merge[1] of the nearest pose that places the surface as b does. -> bool array"""
+    rot, trans = merge[2].errors(a, b)
+    return (rot <= merge[0]) & (trans <= merge[1])
 
 
 def add_touch(tracks, contacts, motion):

@@ -2,9 +2,13 @@
 plot), and bad sequence files named in one line with exit code 2."""
 
 import json
+import re
+import warnings
 
 import jsonschema
 import numpy as np
+import pytest
+import trimesh
 
 from contactpose.cli import main
 from contactpose.geometry.metrics import rotation_error_deg
@@ -87,3 +91,49 @@ def test_bad_sequence_exits_2_with_one_line(tmp_path, capsys):
         assert main(["track", "banana", "--sequence", str(tmp_path / "seq.json")]) == 2
         err = capsys.readouterr().err
         assert want in err and err.count("\n") == 1, err
+
+
+def test_track_on_a_symmetric_torus_reports_errors_modulo_symmetry(tmp_path, capsys):
+    """A torus of 24 sections (a model file: lengths in mesh units): every step's error modulo
+    its symmetry stays below 2° while the raw error is a twin's (up to 180°), one track is
+    kept, and the JSON carries both errors, the symmetry in words and validates."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = ObjectModel.from_mesh(trimesh.creation.torus(0.05, 0.015, major_sections=24, minor_sections=12))
+    model.save(tmp_path / "torus.npz")
+    seq, _ = _sequence(model, np.random.default_rng(0), 6)
+    (tmp_path / "seq.json").write_text(json.dumps(seq))
+    code = main(["track", str(tmp_path / "torus.npz"), "--sequence", str(tmp_path / "seq.json"), "--position-noise",
+                 "0.0005", "-o", str(tmp_path / "out.json"), "--plot", str(tmp_path / "err.png")])
+    assert code == 0
+    lines = capsys.readouterr().out.splitlines()
+    pattern = r"step \d+: 1 track\(s\), .*  error ([\d.]+)° \(raw ([\d.]+)°\), ([\d.e-]+) mesh units \(raw ([\d.e-]+) mesh units\)"
+    found = [re.fullmatch(pattern, line) for line in lines]
+    assert len(lines) == 7 and all(found), lines
+    assert max(float(m.group(1)) for m in found) < 2.0
+    data = json.loads((tmp_path / "out.json").read_text())
+    errors = list(jsonschema.Draft202012Validator(output.load_schema("track")).iter_errors(data))
+    assert not errors, errors[0].message
+    assert "24-fold about axis (0.00, 0.00, 1.00)" in data["symmetry"]
+    truth = [np.array(step["true_pose"]) for step in seq["steps"]]
+    for step, true_pose in zip(data["steps"], truth):
+        assert step["tracks"] == 1 and step["rot_err_sym_deg"] < 2.0
+        assert step["rot_err_sym_deg"] <= step["rot_err_deg"] + 1e-9
+        assert np.isclose(step["rot_err_deg"], rotation_error_deg(np.array(step["pose"]), true_pose))
+    assert (tmp_path / "err.png").stat().st_size > 1000
+
+
+def test_track_prints_millimetres_for_a_built_in_object(tmp_path, capsys):
+    """A built-in object is in metres: its errors print in mm (raw alone: the banana has no
+    symmetry), and the JSON's symmetry is empty with equal raw and modulo-symmetry errors."""
+    model = ObjectModel.from_mesh(objects.load("banana"))
+    seq, _ = _sequence(model, np.random.default_rng(5), 2)
+    (tmp_path / "seq.json").write_text(json.dumps(seq))
+    assert main(["track", "banana", "--sequence", str(tmp_path / "seq.json"), "-o", str(tmp_path / "out.json")]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert all(line.endswith(" mm") and "raw" not in line for line in lines), lines
+    data = json.loads((tmp_path / "out.json").read_text())
+    assert data["symmetry"] == ""
+    for step in data["steps"]:
+        assert step["rot_err_sym_deg"] == pytest.approx(step["rot_err_deg"], abs=1e-9)
+        assert step["trans_err_sym"] == pytest.approx(step["trans_err"], abs=1e-12)
