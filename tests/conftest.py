@@ -20,6 +20,19 @@ settings.register_profile("repeatable", derandomize=True, database=None)
 settings.register_profile("explore")
 settings.load_profile(os.environ.get("CONTACTPOSE_HYPOTHESIS", "repeatable"))
 
+@pytest.fixture(scope="session", autouse=True)
+def model_cache_dir(tmp_path_factory):
+    """The model cache (contactpose.io.cache) in a folder of the test session, never the user's."""
+    folder = tmp_path_factory.mktemp("model_cache")
+    saved = os.environ.get("CONTACTPOSE_CACHE_DIR")
+    os.environ["CONTACTPOSE_CACHE_DIR"] = str(folder)
+    yield folder
+    if saved is None:
+        os.environ.pop("CONTACTPOSE_CACHE_DIR", None)
+    else:
+        os.environ["CONTACTPOSE_CACHE_DIR"] = saved
+
+
 #: Sensor noise used throughout the online tests: 0.5 mm and 1 degree per axis.
 POSITION_NOISE = 0.0005
 NORMAL_NOISE_DEG = 1.0

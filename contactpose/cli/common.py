@@ -3,20 +3,26 @@
 from __future__ import annotations
 
 import argparse
+import hashlib
 import inspect
 import os
 import warnings
 
+from contactpose import __version__
+from contactpose.io import cache as model_cache
 from contactpose.localize import localize
 from contactpose.model import ObjectModel
+from contactpose.model.object_model import load_mesh, mesh_hash
 from contactpose.options import DEFAULT_POSITION_NOISE_FRAC
-from contactpose.sim import objects
+from contactpose.sim import objects, ycb
 
 #: Exit codes of ``contactpose`` (documented in the README's command-line section).
 EXIT_OK = 0
 EXIT_INTERNAL = 1
 EXIT_BAD_INPUT = 2
-EXIT_NO_HYPOTHESIS = 3
+#: ``localize --strict`` and an empty or poor answer (status no_hypothesis or poor_fit).
+EXIT_STRICT = 3
+EXIT_NO_HYPOTHESIS = EXIT_STRICT  # its first name, when --strict covered no_hypothesis only
 EXIT_INTERRUPTED = 130
 EXIT_CLOSED_PIPE = 141  # 128 + SIGPIPE, what a shell reports for a tool stopped by a closed pipe
 
@@ -25,12 +31,14 @@ class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
     """Every option's default in ``--help``; none for None (no value) or False (a flag off).
 
     Options whose default the library applies (``default=None`` in the parser, so that a
-    given value can be told from the default) state it in their help text.
+    given value can be told from the default) state it in their help text; a help text that
+    states its default is shown as it is, so that every default appears once.
     """
 
     def _get_help_string(self, action):
-        default = action.default
-        if default is None or default is False or default is argparse.SUPPRESS or "%(default)" in (action.help or ""):
+        default, text = action.default, action.help or ""
+        if default is None or default is False or default is argparse.SUPPRESS or "%(default)" in text \
+                or "(default:" in text:
             return action.help
         if isinstance(default, (list, tuple)):
             return f"{action.help} (default: {' '.join(map(str, default))})"
@@ -81,10 +89,40 @@ def is_model_file(path):
     return str(path).endswith(".npz")
 
 
-def model_or_mesh(path, bins=None, bounds=None, fix_normals=False, max_span=None):
-    """Load a model .npz, or build one from a mesh file (or built-in object name)."""
+#: The model builder's defaults of the options that key a cached model.
+_BUILD_DEFAULTS = {k: library_default(ObjectModel.from_mesh, k) for k in ("bins", "bounds")}
+
+
+def source_hash(name):
+    """SHA-256 of what a named object's model is built from, part of its cache key: a YCB
+    object's mesh file, read as bytes (no mesh parsed, so a cached model is ready without
+    importing trimesh), or a procedural object's generated mesh (model.object_model.mesh_hash)."""
+    if ycb.is_ycb_name(name):
+        return hashlib.sha256(ycb.mesh_path(name).read_bytes()).hexdigest()
+    return mesh_hash(*load_mesh(objects.load(name)))
+
+
+def model_or_mesh(path, bins=None, bounds=None, fix_normals=False, max_span=None, cache=True):
+    """Load a model .npz, or build one from a mesh file or a built-in object name. A built-in
+    or YCB name's model goes through the model cache (contactpose.io.cache; ``cache=False``
+    builds it afresh): built and stored once, loaded by later calls. A shipped YCB mesh's
+    known defects are one debug line (sim.ycb.shipped_defects)."""
     if is_model_file(path):
         return ObjectModel.load(path, bins=bins, bounds=bounds)
-    source = objects.load(path) if objects.is_builtin(path) and not os.path.exists(path) else path
     kwargs = {k: v for k, v in (("bins", bins), ("bounds", bounds)) if v is not None}
-    return ObjectModel.from_mesh(source, fix_normals=fix_normals, max_span=max_span, **kwargs)
+    if not (objects.is_builtin(path) and not os.path.exists(path)):
+        return ObjectModel.from_mesh(path, fix_normals=fix_normals, max_span=max_span, **kwargs)
+    name = ycb.resolve(path) if ycb.is_ycb_name(path) else path
+
+    def build():
+        with ycb.shipped_defects(name):
+            return ObjectModel.from_mesh(objects.load(name), fix_normals=fix_normals, max_span=max_span, **kwargs)
+
+    if not cache:
+        return build()
+    options = {"bins": [int(b) for b in bins or _BUILD_DEFAULTS["bins"]], "bounds": bounds or _BUILD_DEFAULTS["bounds"],
+               "fix_normals": bool(fix_normals), "max_span": None if max_span is None else float(max_span)}
+    return model_cache.cached_model(name, source_hash(name), options, __version__, build,
+                                    lambda file, verify: ObjectModel.load(file, bins=bins, bounds=bounds, verify=verify,
+                                                                          mmap=True),
+                                    lambda model: model.nbytes)

@@ -1,5 +1,6 @@
 """File formats: CONTACTS, PRIOR and sequence JSON (:mod:`.jsonfiles`), the model file (npz,
-checks, memory map: :mod:`.modelfile`), and the JSON the CLI writes (:mod:`.output`).
+checks, memory map: :mod:`.modelfile`), the cache of models built from named objects
+(:mod:`.cache`), and the JSON the CLI writes (:mod:`.output`).
 
 Paper equation: the measured contact plane of eq. (1), d̃ = -ñᵀx̃, is what a CONTACTS file
 gives (points and normals; contactpose.contacts.Contacts holds them).

@@ -41,7 +41,11 @@ STORED_MODEL = {
     "mesh_hash": ("U", ()), "bounds": ("U", ()), "diameter": ("f", ()),
     "vertices": ("f", ("V", 3)), "faces": ("i", ("m", 3), (0, "V")),
     "normals": ("f", ("m", 3)), "offsets": ("f", ("m",)), "areas": ("f", ("m",)), "valid": ("b", ("m",)),
+    "winding": ("U", ()),
 }
+#: The model's arrays that files written before them lack (a missing one means "not recorded"):
+#: ``winding``, the mesh's face winding found at build time (ObjectModel.winding).
+OPTIONAL_MODEL = ("winding",)
 #: PairFeatures of P pairs of items (facets or patches) 0 .. n-1. k and l may be int16
 #: (files of models with fewer than 32,768 facets or patches).
 STORED_FEATURES = {
@@ -49,8 +53,14 @@ STORED_FEATURES = {
     "dmax": ("f", ("P",)), "dmin_vertex": ("f", ("P",)), "dmin_exact": ("f", ("P",)),
     "alpha": ("f", ("P",)), "alpha_hi": ("f", ("P",)), "h_kl": ("f", ("P", 2)), "h_lk": ("f", ("P", 2)),
 }
-#: A PairTable's arrays besides its offsets (whose length follows from bins).
-STORED_TABLE = {"bins": ("i", (3,), (1, 4097)), "mins": ("f", (3,)), "widths": ("f", (3,)), "max_span": ("F", ())}
+#: A PairTable's arrays besides its offsets (whose length follows from bins); ``alpha_width``,
+#: the widest angle interval (found on load when a file lacks it), is OPTIONAL_TABLE.
+STORED_TABLE = {"bins": ("i", (3,), (1, 4097)), "mins": ("f", (3,)), "widths": ("f", (3,)), "max_span": ("F", ()),
+                "alpha_width": ("f", ())}
+OPTIONAL_TABLE = ("alpha_width",)
+#: The object's symmetry group (model.symmetry.Symmetry), found when the model was saved
+#: (found on use when a file lacks it): K transforms, C continuous axes.
+STORED_SYMMETRY = {"rotations": ("f", ("K", 4, 4)), "axes": ("f", ("C", 3)), "centre": ("f", (3,)), "exact": ("b", ())}
 #: Patches: p patches of M member facets out of m (label -1: a degenerate facet).
 STORED_PATCHES = {
     "normals": ("f", ("p", 3)), "offsets": ("f", ("p",)), "centres": ("f", ("p", 3)), "cone": ("f", ("p",)),
@@ -59,12 +69,14 @@ STORED_PATCHES = {
 }
 
 
-def check_arrays(arrays, spec, sizes, prefix="", optional=()):
+def check_arrays(arrays, spec, sizes, prefix="", optional=(), values=True):
     """Check ``arrays`` (name -> ndarray) against ``spec``.
 
     sizes : dict size name -> (value, array that set it), updated in place;
     prefix : prepended to names in messages (the name in the file);
-    optional : names that may be missing.
+    optional : names that may be missing;
+    values : also scan the values (finite floats, indices in range); False checks names,
+    kinds and shapes only, for a file this library wrote and vouches for.
     """
     for name, (kind, shape, *limits) in spec.items():
         if name not in arrays:
@@ -72,10 +84,10 @@ def check_arrays(arrays, spec, sizes, prefix="", optional=()):
                 continue
             raise ModelFileError(f"it lacks the array {prefix + name!r}")
         a = np.asanyarray(arrays[name])
-        if not (_kind_ok(a, kind) and _shape_ok(a.shape, shape, sizes, prefix + name)):
+        if not (_kind_ok(a, kind, values) and _shape_ok(a.shape, shape, sizes, prefix + name)):
             raise ModelFileError(f"array {prefix + name!r} must hold {KINDS[kind]} of shape "
                                  f"{_describe(shape, sizes)}, got {a.dtype} of shape {a.shape}")
-        if limits:
+        if limits and values:
             _check_range(prefix + name, a, *limits[0], sizes)
 
 
@@ -85,11 +97,11 @@ def check_pointers(name, a, total):
         raise ModelFileError(f"array {name!r} must rise from 0 to {total} without decreasing")
 
 
-def _kind_ok(a, kind):
+def _kind_ok(a, kind, values=True):
     if kind in "fF":  # numba's kernels take float32 and float64 only
         if a.dtype.kind != "f" or a.dtype.itemsize not in (4, 8):
             return False
-        return kind == "F" or a.size == 0 or bool(np.isfinite(a.min()) and np.isfinite(a.max()))
+        return kind == "F" or a.size == 0 or not values or bool(np.isfinite(a.min()) and np.isfinite(a.max()))
     return a.dtype.kind == kind
 
 
@@ -206,17 +218,18 @@ def prefixed(data, prefix):
     return {k[len(prefix):]: v for k, v in data.items() if k.startswith(prefix)}
 
 
-def read_npz(path):
+def read_npz(path, mmap=None):
     """Every array of an .npz, turning every failure into ModelFileError (ResourceError when
     memory runs short). Each member's header is checked against its size first. Large
-    files are memory-mapped (their members are stored uncompressed by ``save``)."""
+    files are memory-mapped (their members are stored uncompressed by ``save``); mmap=True
+    maps any file stored uncompressed, False none (None: by size, MMAP_MIN_BYTES)."""
     if not os.path.isfile(path):
         raise ModelFileError(f"model file {path!r} does not exist")
     try:
         sizes = member_sizes(path)
     except Exception as exc:  # any failure to decode the headers means a damaged or foreign file
         raise ModelFileError(unreadable(path, exc)) from None
-    if os.path.getsize(path) >= MMAP_MIN_BYTES:
+    if mmap or (mmap is None and os.path.getsize(path) >= MMAP_MIN_BYTES):
         try:
             return mmap_npz(path)
         except MemoryError:

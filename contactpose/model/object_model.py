@@ -17,14 +17,15 @@ from dataclasses import dataclass, field
 from functools import cached_property
 
 import numpy as np
-import trimesh
 
 from contactpose import tol
+from contactpose.deferred import deferred
 from contactpose.errors import ContactPoseError, MeshError, ModelFileError
 from contactpose.io.modelfile import (
     COMPRESS_MIN_BYTES,
     FORMAT_VERSION,
     MMAP_MIN_BYTES,
+    OPTIONAL_MODEL,
     STORED_FEATURES,
     STORED_MODEL,
     check_arrays,
@@ -39,7 +40,10 @@ from contactpose.model.memory import check_fits
 from contactpose.model.patches import MemberGroups, Patches, PatchPairs, find_patches
 from contactpose.model.plan import PairPlan
 from contactpose.model.surface import SurfaceTopology
+from contactpose.model.symmetry import Symmetry, remember, symmetry
 from contactpose.model.table import DEFAULT_BINS, STORED_BYTES_PER_PAIR, PairTable, check_bins
+
+trimesh = deferred("trimesh")
 
 log = logging.getLogger(__name__)
 
@@ -167,8 +171,8 @@ def _read_mesh_file(path):
     if not isinstance(mesh, trimesh.Trimesh):
         raise MeshError(f"{path!r} holds no triangle mesh (got {type(mesh).__name__})")
     if len(mesh.faces) == 0:  # trimesh reads text or random bytes named .stl/.obj as an empty mesh
-        raise MeshError(f"cannot read {path!r} as a mesh: it has no faces (a mesh needs faces of shape "
-                        f"(m, 3) with m >= 1, got shape {np.shape(mesh.faces)})")
+        raise MeshError(f"cannot read {path!r} as a mesh: it is not a mesh file (it has no faces: a mesh needs "
+                        f"faces of shape (m, 3) with m >= 1, got shape {np.shape(mesh.faces)})")
     return mesh
 
 
@@ -251,14 +255,29 @@ def edge_uses(merged):
     return np.bincount(inverse)
 
 
+#: The face winding of a mesh as ObjectModel.winding records it: "outward" (closed, positive
+#: volume), "inward" (closed, negative volume: every facet normal points into the object),
+#: "inconsistent" (neighbouring facets wound opposite ways) or "open" (consistent, but a mesh
+#: that is not closed has no inside to tell the direction by).
+WINDINGS = ("outward", "inward", "inconsistent", "open")
+#: The warning for each winding that will keep contact normals from matching.
+WINDING_PROBLEMS = {"inward": "facet normals point inward (closed mesh with negative volume)",
+                    "inconsistent": "face winding is inconsistent between neighbouring facets"}
+
+
+def winding_state(merged):
+    """The face winding of a vertex-merged mesh, one of WINDINGS."""
+    if not merged.is_winding_consistent:
+        return "inconsistent"
+    if not merged.is_watertight:
+        return "open"
+    return "inward" if merged.volume < 0 else "outward"
+
+
 def winding_report(merged):
     """Check face winding of a vertex-merged mesh. A message if normals look inward or
     inconsistent, else None."""
-    if not merged.is_winding_consistent:
-        return "face winding is inconsistent between neighbouring facets"
-    if merged.is_watertight and merged.volume < 0:
-        return "facet normals point inward (closed mesh with negative volume)"
-    return None
+    return WINDING_PROBLEMS.get(winding_state(merged))
 
 
 def rewind_outward(vertices, faces):
@@ -295,7 +314,9 @@ def mesh_hash(vertices, faces):
 class ObjectModel:
     """A mesh refined for contact search: facet planes, pair features and the table K3.
 
-    Build with :meth:`from_mesh`, persist with :meth:`save` / :meth:`load`.
+    Build with :meth:`from_mesh`, persist with :meth:`save` / :meth:`load`. ``winding`` is
+    the mesh's face winding found when it was built (one of WINDINGS), or None when not
+    recorded (a model file written before it was).
     """
 
     vertices: np.ndarray
@@ -308,6 +329,7 @@ class ObjectModel:
     build_seconds: dict = field(default_factory=dict)
     patches: Patches | None = None
     patch_table: PairTable | None = None
+    winding: str | None = None
 
     # ----------------------------------------------------------------- build
     @classmethod
@@ -347,7 +369,7 @@ class ObjectModel:
         keep = _keep_facet_pairs(facet_pairs, patches, pair_count)
         later = LAYOUT_BYTES_PER_FACET * len(faces) + (_diameter_bytes(len(vertices)) if diameter is None else 0)
         plan.check(len(faces), max_span, extra=later)  # before any pair is listed
-        _report_winding(merged)
+        winding = _report_winding(merged)
         if diameter is None:
             diameter, planes, patches = _late_diameter(vertices, triangles, planes, patches,
                                                        lambda p: _find_patches(merged, p, bounds, patch_tol_deg))
@@ -369,7 +391,7 @@ class ObjectModel:
             "total": t_table - start,
         }
         return cls(vertices, faces, planes, table, bounds, diameter,
-                   mesh_hash(vertices, faces), seconds, patches, patch_table)
+                   mesh_hash(vertices, faces), seconds, patches, patch_table, winding)
 
     # ------------------------------------------------------------ properties
     @property
@@ -571,18 +593,20 @@ class ObjectModel:
         return (self.patch_table if self.table is None else self.table).bins
 
     # ----------------------------------------------------------- persistence
-    def save(self, path):
+    def save(self, path, mappable=False):
         """Write the model to one ``.npz`` (no pickle). Returns the path written.
 
-        Compact when that leaves less than MMAP_MIN_BYTES of arrays: pair indices as int16
-        where they fit, the facet table without its DERIVED_FIELDS (cheap and exact:
-        :meth:`load` recomputes them bit for bit), members of COMPRESS_MIN_BYTES or more
-        deflated. Otherwise every array is stored as built, uncompressed, for :meth:`load`
-        to memory-map. The file is written beside ``path`` and renamed over it, so a process
-        that has the old file memory-mapped keeps its contents."""
+        Compact, unless ``mappable`` or that leaves MMAP_MIN_BYTES of arrays or more: pair
+        indices as int16 where they fit, the facet table without its DERIVED_FIELDS (cheap and
+        exact: :meth:`load` recomputes them bit for bit), members of COMPRESS_MIN_BYTES or more
+        deflated. Otherwise every array is stored as built, uncompressed, for :meth:`load` to
+        memory-map (the model cache's files: read in milliseconds). The file also holds the
+        object's symmetry group (model.symmetry, found here when not yet: 4 ms to 0.3 s). It is
+        written beside ``path`` and renamed over it, so a process that has the old file
+        memory-mapped keeps its contents."""
         path = os.fspath(path)
-        arrays = self._file_arrays(compact=True)
-        compact = sum(a.nbytes for a in arrays.values()) < MMAP_MIN_BYTES
+        arrays = self._file_arrays(compact=not mappable)
+        compact = not mappable and sum(a.nbytes for a in arrays.values()) < MMAP_MIN_BYTES
         if not compact:
             arrays = self._file_arrays(compact=False)
         arrays["content_hash"] = np.array(content_hash(arrays))
@@ -604,6 +628,8 @@ class ObjectModel:
             "areas": self.planes.areas,
             "valid": self.planes.valid,
         }
+        if self.winding is not None:
+            arrays["winding"] = np.array(self.winding)
         if self.table is not None:
             stored = _file_features(self.features, self.num_facets, compact, derived=compact)
             arrays.update({f"features_{k}": v for k, v in stored.items()})
@@ -614,33 +640,39 @@ class ObjectModel:
             stored = _file_features(self.patch_table.features, self.patches.count, compact, derived=False)
             arrays.update({f"pfeatures_{k}": v for k, v in stored.items()})
             arrays.update({f"ptable_{k}": v for k, v in self.patch_table.to_arrays().items()})
+        arrays.update({f"symmetry_{k}": v for k, v in symmetry(self).to_arrays().items()})
         return arrays
 
     @classmethod
-    def load(cls, path, *, mesh=None, bins=None, bounds=None):
+    def load(cls, path, *, mesh=None, bins=None, bounds=None, verify=True, mmap=None):
         """Read a model written by :meth:`save`.
 
         mesh, bins, bounds : if given, the model must have been built for this mesh
         and with these settings, else ModelFileError says what differs.
+        verify : check the arrays against the file's content hash and scan their values
+        (finite, indices in range): 1.5 s for a 1.9 GB model. False checks names, kinds and
+        shapes only, for a file the caller vouches for (the model cache's, whose size it recorded).
+        mmap : memory-map the arrays of a file stored uncompressed (``save(mappable=True)``);
+        None: files of MMAP_MIN_BYTES or more.
         """
         path = os.fspath(path)
-        data = read_npz(path)
+        data = read_npz(path, mmap)
         check_version(path, data)
         stored = data.pop("content_hash", None)
-        if stored is None or np.shape(stored) != () or str(stored) != content_hash(data):
+        if verify and (stored is None or np.shape(stored) != () or str(stored) != content_hash(data)):
             raise ModelFileError(f"model file {path!r} is corrupt: its arrays do not match its content hash")
         try:
-            model = cls._from_arrays(data)
+            model = cls._from_arrays(data, verify)
         except ContactPoseError as exc:  # a MeshError too: the mesh is the file's
             raise ModelFileError(f"model file {path!r} is corrupt or not a model: {exc}") from None
         model._check_expected(path, mesh=mesh, bins=bins, bounds=bounds)
         return model
 
     @classmethod
-    def _from_arrays(cls, data):
-        """The model of a file's arrays, each checked first (stored.py)."""
+    def _from_arrays(cls, data, values=True):
+        """The model of a file's arrays, each checked first (io.modelfile; values : their values too)."""
         sizes = {}
-        check_arrays(data, STORED_MODEL, sizes)
+        check_arrays(data, STORED_MODEL, sizes, optional=OPTIONAL_MODEL, values=values)
         vertices, faces = check_mesh_arrays(data["vertices"], data["faces"])
         bounds, diameter, stored_hash = str(data["bounds"]), float(data["diameter"]), str(data["mesh_hash"])
         if bounds not in BOUNDS or not diameter > 0:
@@ -649,8 +681,14 @@ class ObjectModel:
         if mesh_hash(vertices, faces) != stored_hash:
             raise ModelFileError("its mesh does not match its stored hash")
         planes = FacetPlanes(data["normals"], data["offsets"], data["areas"], data["valid"])
-        table, patches, patch_table = _stored_tables(data, sizes["m"])
-        return cls(vertices, faces, planes, table, bounds, diameter, stored_hash, {}, patches, patch_table)
+        winding = str(data["winding"]) if "winding" in data else None  # files written before: not recorded
+        if winding is not None and winding not in WINDINGS:
+            raise ModelFileError(f"'winding' must be one of {WINDINGS}, got {winding[:40]!r}")
+        table, patches, patch_table = _stored_tables(data, sizes["m"], values)
+        model = cls(vertices, faces, planes, table, bounds, diameter, stored_hash, {}, patches, patch_table, winding)
+        if _has(data, "symmetry_"):  # files written before it: found on use
+            remember(model, Symmetry.from_arrays(prefixed(data, "symmetry_"), values=values))
+        return model
 
     @property
     def max_span(self):
@@ -679,6 +717,8 @@ class ObjectModel:
         parts += [f"bins {tuple(self.bins)}", f"bounds={self.bounds!r}", f"diameter {self.diameter:.3g} (mesh units)"]
         if self.max_span is not None:
             parts.append(f"max_span {self.max_span:.3g}")
+        if self.winding in WINDING_PROBLEMS:
+            parts.append(f"winding {self.winding}")
         parts.append(f"{self.nbytes / 1e6:.3g} MB")
         return f"ObjectModel({', '.join(parts)})"
 
@@ -783,32 +823,35 @@ def _file_features(features, items, compact, derived):
     return arrays
 
 
-def _stored_tables(data, facets):
+def _stored_tables(data, facets, values=True):
     """(facet table, patches, patch table) of a model file's arrays, None where absent.
-    facets : (m, the array that gives it)."""
-    patches = Patches.from_arrays(prefixed(data, "patches_"), {"m": facets}) if _has(data, "patches_") else None
+    facets : (m, the array that gives it); values : scan the arrays' values too."""
+    patches = Patches.from_arrays(prefixed(data, "patches_"), {"m": facets}, values=values) if _has(data, "patches_") else None
     patch_table = None
     if _has(data, "ptable_", "pfeatures_"):
         if patches is None:
             raise ModelFileError("it has a patch table ('ptable_...') but no patches ('patches_...')")
-        patch_table = _stored_table(data, ("ptable_", "pfeatures_"), (patches.count, "patches_normals"))
+        patch_table = _stored_table(data, ("ptable_", "pfeatures_"), (patches.count, "patches_normals"),
+                                    values=values)
     table = None
     if _has(data, "table_", "features_") or patch_table is None:  # a model has at least one table
         triangles = data["vertices"][data["faces"]]
-        table = _stored_table(data, ("table_", "features_"), facets, (triangles, data["normals"]))
+        table = _stored_table(data, ("table_", "features_"), facets, (triangles, data["normals"]), values)
     return table, patches, patch_table
 
 
-def _stored_table(data, prefixes, items, planes=None):
+def _stored_table(data, prefixes, items, planes=None, values=True):
     """A PairTable from the arrays named prefixes[0] + ... and prefixes[1] + ...;
     items : (number of facets or patches its pairs index, the array that gives it);
-    planes : (triangles, normals) of a facet table, whose DERIVED_FIELDS a compact file leaves out."""
+    planes : (triangles, normals) of a facet table, whose DERIVED_FIELDS a compact file leaves out;
+    values : scan the arrays' values too."""
     arrays = {k: _as_int32(v) if k in ("k", "l") else v for k, v in prefixed(data, prefixes[1]).items()}
     if planes is not None and not any(f in arrays for f in DERIVED_FIELDS):
-        check_arrays(arrays, STORED_FEATURES, {"n": items}, prefixes[1], ("dmin_exact", "alpha_hi") + DERIVED_FIELDS)
+        check_arrays(arrays, STORED_FEATURES, {"n": items}, prefixes[1], ("dmin_exact", "alpha_hi") + DERIVED_FIELDS,
+                     values)
         arrays.update(derived_features(*planes, arrays["k"], arrays["l"]))
     features = PairFeatures.from_arrays(arrays)
-    return PairTable.from_arrays(prefixed(data, prefixes[0]), features, {"n": items}, prefixes)
+    return PairTable.from_arrays(prefixed(data, prefixes[0]), features, {"n": items}, prefixes, values)
 
 
 def _as_int32(a):
@@ -847,9 +890,10 @@ def _report_degenerate(planes):
 
 
 def _report_winding(merged):
-    """Warn about inward or inconsistent winding and non-manifold edges. merged : the
-    vertex-merged mesh."""
-    problem = winding_report(merged)
+    """Warn about inward or inconsistent winding and non-manifold edges; the winding (one of
+    WINDINGS). merged : the vertex-merged mesh."""
+    winding = winding_state(merged)
+    problem = WINDING_PROBLEMS.get(winding)
     if problem:
         warnings.warn(f"{problem}; contact normals will not match (try `--fix-normals`)", stacklevel=3)
     shared = int(np.count_nonzero(edge_uses(merged) > 2))
@@ -857,3 +901,4 @@ def _report_winding(merged):
         warnings.warn(f"mesh has {shared} non-manifold edges (each shared by more than two facets): the pair "
                       "bounds are per triangle and stay exact, but the winding and inside checks skip those "
                       "edges; repair the mesh if contact normals look wrong there", stacklevel=3)
+    return winding

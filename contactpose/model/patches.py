@@ -72,11 +72,12 @@ class Patches:
                 "cone": self.cone, "indptr": self.indptr, "members": self.members, "tol_deg": np.array(self.tol_deg)}
 
     @classmethod
-    def from_arrays(cls, a, sizes=None, prefix="patches_"):
+    def from_arrays(cls, a, sizes=None, prefix="patches_", values=True):
         """Patches of a model file. a : their arrays; sizes : sizes known already, as
-        {"m": (facets, array that says so)}; prefix : of their names in the file (for messages)."""
+        {"m": (facets, array that says so)}; prefix : of their names in the file (for messages);
+        values : scan the values too (io.modelfile.check_arrays)."""
         sizes = {} if sizes is None else sizes
-        check_arrays(a, STORED_PATCHES, sizes, prefix)
+        check_arrays(a, STORED_PATCHES, sizes, prefix, values=values)
         check_pointers(prefix + "indptr", a["indptr"], len(a["members"]))
         return cls(a["labels"], a["normals"], a["offsets"], a["centres"], a["cone"], a["indptr"], a["members"],
                    float(a["tol_deg"]))

@@ -12,13 +12,14 @@ the exact interval test to each stored pair, and returns ordered pairs.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numba
 import numpy as np
 
 from contactpose import tol
 from contactpose.errors import ContactPoseError, ModelFileError
-from contactpose.io.modelfile import STORED_FEATURES, STORED_TABLE, check_arrays, check_pointers
+from contactpose.io.modelfile import OPTIONAL_TABLE, STORED_FEATURES, STORED_TABLE, check_arrays, check_pointers
 from contactpose.model.features import CHUNK_PAIRS, PairFeatures
 
 #: Default bins (p_dmax, p_dmin, p_alpha). α bins of 180°/64 ≈ 2.8° sit just below the
@@ -87,8 +88,9 @@ class PairTable:
     widths: np.ndarray
     max_span: float | None = None
 
-    @property
+    @cached_property
     def alpha_width(self):
+        """The widest angle interval α_hi - α of a pair (0 without intervals); stored in model files."""
         f = self.features
         return 0.0 if f.alpha_hi is None or len(f.alpha) == 0 else float(np.max(f.alpha_hi - f.alpha))
 
@@ -110,15 +112,16 @@ class PairTable:
     def to_arrays(self):
         span = np.nan if self.max_span is None else self.max_span
         return {"offsets": self.offsets, "bins": np.array(self.bins), "mins": self.mins, "widths": self.widths,
-                "max_span": np.array(span)}
+                "max_span": np.array(span), "alpha_width": np.array(self.alpha_width)}
 
     @classmethod
-    def from_arrays(cls, arrays, features, sizes, prefixes=("table_", "features_")):
+    def from_arrays(cls, arrays, features, sizes, prefixes=("table_", "features_"), values=True):
         """The table of a model file. arrays : the table's arrays; features : its PairFeatures;
         sizes : {"n": (facets or patches the pairs index, array that says so)};
-        prefixes : of the table's and the features' arrays in the file (for messages)."""
-        check_arrays(features.to_arrays(), STORED_FEATURES, sizes, prefixes[1], ("dmin_exact", "alpha_hi"))
-        check_arrays(arrays, STORED_TABLE, sizes, prefixes[0])
+        prefixes : of the table's and the features' arrays in the file (for messages);
+        values : scan the values too (io.modelfile.check_arrays)."""
+        check_arrays(features.to_arrays(), STORED_FEATURES, sizes, prefixes[1], ("dmin_exact", "alpha_hi"), values)
+        check_arrays(arrays, STORED_TABLE, sizes, prefixes[0], OPTIONAL_TABLE)
         bins = tuple(int(b) for b in arrays["bins"])
         check_arrays(arrays, {"offsets": ("i", ("B",))}, {"B": (int(np.prod(bins)) + 1, prefixes[0] + "bins")},
                      prefixes[0])
@@ -128,7 +131,13 @@ class PairTable:
         span = float(arrays["max_span"])
         if not (np.isnan(span) or 0 < span < np.inf):
             raise ModelFileError(f"array {prefixes[0] + 'max_span'!r} must be a positive length or NaN, got {span}")
-        return cls(features, arrays["offsets"], bins, arrays["mins"], arrays["widths"], None if np.isnan(span) else span)
+        table = cls(features, arrays["offsets"], bins, arrays["mins"], arrays["widths"], None if np.isnan(span) else span)
+        if "alpha_width" in arrays:
+            width = float(arrays["alpha_width"])
+            if not 0 <= width <= np.pi:
+                raise ModelFileError(f"array {prefixes[0] + 'alpha_width'!r} must be an angle in [0, pi], got {width}")
+            table.__dict__["alpha_width"] = width  # as cached_property keeps it
+        return table
 
     def query(self, distance, angle, sigma_distance, sigma_angle, bounds="exact"):
         """Admissible unordered pairs for one finger pair (eq. 5 plus the exact test).

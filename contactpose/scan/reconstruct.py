@@ -30,17 +30,20 @@ from dataclasses import dataclass, field
 from typing import Any, Iterator, Sequence
 
 import numpy as np
-import open3d as o3d
-import trimesh
 from scipy.spatial import cKDTree
 from tqdm import tqdm
 
 from contactpose import tol
+from contactpose.deferred import deferred
 from contactpose.errors import ScanError
 from contactpose.geometry.raycast import Raycaster
 from contactpose.model.memory import check_fits
 
 log = logging.getLogger(__name__)
+
+o3d = deferred("open3d")
+trimesh = deferred("trimesh")
+
 
 __all__ = [
     "ScanOptions", "ScanReport", "ScanResult", "scan_to_mesh", "load_cloud",

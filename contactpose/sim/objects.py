@@ -31,11 +31,13 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import trimesh
 from scipy.spatial import cKDTree
 
+from contactpose.deferred import deferred
 from contactpose.errors import ContactPoseError
 from contactpose.sim import ycb
+
+trimesh = deferred("trimesh")
 
 DATA_DIR = Path(__file__).resolve().parent.parent / "data"
 BANANA53_PATH = DATA_DIR / "banana53.ply"

@@ -7,7 +7,6 @@ identity), as in §4.
 from __future__ import annotations
 
 import numpy as np
-from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from contactpose.costs.paper import eq7_residuals
@@ -20,6 +19,8 @@ def fit_lm(obj_normals, obj_offsets, points, finger_normals, start):
     obj_normals : (n, 3), obj_offsets : (n,), points, finger_normals : (n, 3),
     start : (4, 4) initial T_world_object.  ->  (T (4, 4), cost ℒ, converged bool)
     """
+    from scipy.optimize import least_squares  # here: scipy.optimize takes 0.1 s to import
+
     x0 = np.concatenate([Rotation.from_matrix(start[:3, :3]).as_rotvec(), start[:3, 3]])
     sol = least_squares(eq7_residuals, x0, method="lm",
                         args=(obj_normals, obj_offsets, points, finger_normals))

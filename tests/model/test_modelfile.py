@@ -117,6 +117,19 @@ def test_large_files_keep_the_mappable_layout(tmp_path, monkeypatch, rock1k_mode
     assert_same_model(rock1k_model, back)
 
 
+def test_a_mappable_file_is_memory_mapped_when_asked(tmp_path, rock1k_model):
+    """save(mappable=True) stores every array as built, uncompressed, whatever its size; load
+    maps it with mmap=True and reads it into memory by default (a small file)."""
+    path = rock1k_model.save(tmp_path / "m.npz", mappable=True)
+    info = members(path)
+    assert all(f"features_{f}" in info for f in DERIVED_FIELDS)
+    assert all(i.compress_type == zipfile.ZIP_STORED for i in info.values())
+    mapped, read = ObjectModel.load(path, mmap=True), ObjectModel.load(path)
+    assert isinstance(mapped.features.dmax, np.memmap) and not isinstance(read.features.dmax, np.memmap)
+    assert_same_model(rock1k_model, mapped)
+    assert_same_model(rock1k_model, read)
+
+
 def test_file_with_some_derived_fields_missing_is_refused(tmp_path, monkeypatch, rock1k_model):
     monkeypatch.setattr(object_model, "MMAP_MIN_BYTES", 0)
     path = rock1k_model.save(tmp_path / "m.npz")
@@ -191,3 +204,50 @@ def test_repr_is_one_line_without_arrays(tmp_path, banana_model, span_model):
     assert "\n" not in span and "array" not in span and f"max_span {span_model.max_span:.3g}" in span
     patch_only = ObjectModel.from_mesh(objects.load("carton"), facet_pairs=False)
     assert "ordered patch pairs, no facet table" in repr(patch_only)
+
+
+def test_the_symmetry_and_the_widest_angle_interval_travel_with_the_file(tmp_path, monkeypatch, span_model):
+    """A saved box carries its 4 half turns, a patch table its widest α interval; the loaded
+    model uses them without searching again, equal to what a fresh search finds. A file
+    without them (written before) still loads and finds them on use."""
+    from contactpose.model import symmetry as symmetry_module
+
+    box = ObjectModel.from_mesh(objects.load("box"))
+    paths = box.save(tmp_path / "box.npz"), span_model.save(tmp_path / "span.npz")
+    found = symmetry_module.symmetry(box)
+    f = span_model.patch_table.features
+    width = float(np.max(f.alpha_hi - f.alpha))
+    assert width > 0.01
+    monkeypatch.setattr(symmetry_module, "find_symmetry", lambda m: pytest.fail("searched again"))
+    back, span_back = (ObjectModel.load(p) for p in paths)
+    stored = symmetry_module.symmetry(back)
+    assert len(found.rotations) == 4 and np.array_equal(stored.rotations, found.rotations)
+    assert np.array_equal(stored.centre, found.centre) and stored.exact == found.exact
+    assert "alpha_width" in span_back.patch_table.__dict__ and span_back.patch_table.alpha_width == width
+    monkeypatch.undo()
+    for path in paths:
+        with np.load(path) as npz:
+            arrays = {k: npz[k] for k in npz.files if not k.startswith("symmetry_") and not k.endswith(
+                "alpha_width") and k != "content_hash"}
+        arrays["content_hash"] = np.array(modelfile.content_hash(arrays))
+        np.savez(path, **arrays)
+    older, span_older = (ObjectModel.load(p) for p in paths)
+    assert "alpha_width" not in span_older.patch_table.__dict__ and span_older.patch_table.alpha_width == width
+    assert len(symmetry_module.symmetry(older).rotations) == 4
+
+
+def test_an_unverified_load_skips_only_the_content_checks(tmp_path, rock1k_model):
+    """verify=False (the model cache's files) reads the same model without the content hash,
+    and still refuses an array of the wrong shape."""
+    path = rock1k_model.save(tmp_path / "m.npz")
+    with np.load(path) as npz:
+        arrays = {k: npz[k] for k in npz.files}
+    arrays["content_hash"] = np.array("0" * 64)
+    np.savez(path, **arrays)
+    with pytest.raises(ModelFileError, match="content hash"):
+        ObjectModel.load(path)
+    assert_same_model(rock1k_model, ObjectModel.load(path, verify=False))
+    arrays["offsets"] = arrays["offsets"][:-1]
+    np.savez(path, **arrays)
+    with pytest.raises(ModelFileError, match="'offsets'"):
+        ObjectModel.load(path, verify=False)

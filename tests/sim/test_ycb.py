@@ -162,3 +162,38 @@ def test_symmetry_table():
     assert ycb.symmetry("ycb:sugar_box") == "discrete"
     for name in ("banana", "mug", "power_drill", "hammer", "scissors", "adjustable_wrench"):
         assert ycb.symmetry("ycb:" + name) is None, name
+
+
+def _defective_box():
+    """A box with a fin on one edge (a non-manifold edge) and a zero-area facet along it."""
+    box = trimesh.creation.box([0.1, 0.06, 0.04])
+    v, f = np.asarray(box.vertices), np.asarray(box.faces)
+    a, b = f[0][:2]
+    vertices = np.r_[v, [0.5 * (v[a] + v[b]) + [0.0, 0.0, 0.05]], [0.5 * (v[a] + v[b])]]
+    return trimesh.Trimesh(vertices, np.r_[f, [[a, b, len(v)]], [[a, b, len(v) + 1]]], process=False)
+
+
+def test_shipped_defects_are_one_debug_line(caplog):
+    """The model builder's warnings about a mesh's degenerate facets and non-manifold edges are
+    one debug line while a YCB object is built (a shipped mesh cannot be repaired), the facet
+    keeps its index without a plane; for any other name they stay warnings."""
+    import logging
+    import warnings
+
+    from contactpose.model.object_model import ObjectModel
+
+    mesh = _defective_box()
+    with warnings.catch_warnings(record=True) as caught, caplog.at_level(logging.DEBUG, logger="contactpose.sim.ycb"):
+        warnings.simplefilter("always")
+        with ycb.shipped_defects("ycb:035_power_drill"):
+            model = ObjectModel.from_mesh(mesh)
+    assert caught == []
+    lines = [r.getMessage() for r in caplog.records if r.name == "contactpose.sim.ycb"]
+    assert len(lines) == 1 and lines[0].startswith("ycb:035_power_drill: the shipped mesh's own defects")
+    assert "1 degenerate facets excluded from pairs (indices kept)" in lines[0] and "1 non-manifold edges" in lines[0]
+    assert model.num_facets == len(mesh.faces) and not model.planes.valid[-1] and model.planes.valid[:-1].all()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        with ycb.shipped_defects("my_mesh.stl"):
+            ObjectModel.from_mesh(mesh)
+    assert len(caught) == 2
