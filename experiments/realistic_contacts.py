@@ -710,14 +710,25 @@ def plot(out_dir):
         ax = axes[1, 1]
         method_style = {"fast": ("o", "tab:blue"), "paper": ("s", "tab:cyan"), "icp-multistart": ("v", "tab:red"),
                         "scaling-series": ("D", "tab:green")}
+        grasps = sweep.read_columns(out / "timings.csv")
         for method, (marker, color) in method_style.items():
             tot = [pooled(rows, f, method)["all"] for f in fracs]
             if not any(t["n"] for t in tot):
                 continue
-            y = [(t["top1_adds"] * t["ran"] / t["n"] if t["ran"] else 0.0) if t["n"] else np.nan for t in tot]
-            ax.plot(x, y, "-" + marker, color=color, label=f"{method} ({tot[0]['n']} grasps/radius)")
+            label = f"{method} ({tot[0]['n']} grasps/radius)"
+            if not any(t["ran"] for t in tot):  # a method that never ran has no success rate, not one of 0 %
+                notes = grasps["note"][(grasps["method"] == method) & (grasps["ran"] == 0)]
+                why = str(notes[0]).removeprefix("not run: ").split(" (")[0] if len(notes) and notes[0] else ""
+                ax.plot([], [], marker, color=color, mfc="none", ls="none",
+                        label=f"{method}: not run" + (f" ({why})" if why else ""))
+                continue
+            y = [t["top1_adds"] * t["ran"] / t["n"] if t["ran"] else np.nan for t in tot]  # unfinished: a miss
+            ax.plot(x, y, "-" + marker, color=color, label=label)
+            for xi, t in zip(x, tot):
+                if t["n"] and not t["ran"]:
+                    ax.annotate("not run", (xi, 0.02), ha="center", fontsize=5, color=color)
         ax.set_xlabel("fingertip radius (% of diameter)")
-        ax.set_ylabel("top-1 ADD-S success (not run: miss)")
+        ax.set_ylabel("top-1 ADD-S success (unfinished: a miss)")
         ax.set_title("methods on the same grasps (baselines: their subset)")
         ax.set_ylim(-0.03, 1.03)
         ax.legend(fontsize=6, frameon=False)

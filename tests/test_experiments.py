@@ -172,6 +172,9 @@ def test_sequential_smoke(tmp_path):
     assert len(rows) == 12 and {r["method"] for r in rows} == {"track", "batch", "relocalize", "pf"}
     track = [r for r in rows if r["method"] == "track"]
     assert all(np.isfinite(float(r["rot_deg"])) for r in track)
+    # the rock has no symmetry: the errors modulo symmetry are the raw ones
+    assert all(float(r["rot_sym_deg"]) == float(r["rot_deg"]) and float(r["trans_sym_mm"]) == float(r["trans_mm"])
+               for r in track)
     assert "| track |" in (tmp_path / "summary.md").read_text()
     assert all(int(r["reseeds"]) >= 0 for r in track) and all(r["reseeds"] == "" for r in rows if r["method"] != "track")
     assert main(["rock", "--sequences", "1", "--steps", "3", "--methods", "pf", "--out", str(tmp_path)]) == 0

@@ -2,9 +2,10 @@
 
 One module per subcommand, each with ``register(subparsers)`` and ``run(args)``. Exit
 codes (``EXIT_*`` in :mod:`contactpose.cli.common`): 0 success, 1 internal error, 2 bad
-input (one line on stderr: ``contactpose: error: ...``), 3 ``localize --strict`` found no
-hypothesis, 130 interrupted, 141 stdout closed early (``| head``). ``--debug``, before or
-after the subcommand, shows the traceback instead of the one line.
+input (one line on stderr: ``contactpose: error: ...``), 3 ``localize --strict`` and an empty
+or poor answer (no_hypothesis, poor_fit), 130 interrupted, 141 stdout closed early
+(``| head``). ``--debug``, before or after the subcommand, shows the traceback instead of the
+one line.
 """
 
 from __future__ import annotations
@@ -16,14 +17,14 @@ import sys
 import warnings
 
 from contactpose import __version__
-from contactpose.cli import build_model, localize, next_touch, objects, tools, track
+from contactpose.cli import build_model, cache, localize, next_touch, objects, tools, track
 from contactpose.cli.common import (
     EXIT_BAD_INPUT,
     EXIT_CLOSED_PIPE,
     EXIT_INTERNAL,
     EXIT_INTERRUPTED,
-    EXIT_NO_HYPOTHESIS,
     EXIT_OK,
+    EXIT_STRICT,
     HelpFormatter,
 )
 from contactpose.errors import ContactPoseError
@@ -35,7 +36,7 @@ log = logging.getLogger("contactpose")
 
 DESCRIPTION = "Where a robot hand's fingers touch a known object mesh, and the object's pose."
 EPILOG = (f"exit codes: {EXIT_OK} success, {EXIT_INTERNAL} internal error, {EXIT_BAD_INPUT} bad input, "
-          f"{EXIT_NO_HYPOTHESIS} no hypothesis (localize --strict), {EXIT_INTERRUPTED} interrupted, "
+          f"{EXIT_STRICT} an empty or poor answer (localize --strict), {EXIT_INTERRUPTED} interrupted, "
           f"{EXIT_CLOSED_PIPE} stdout closed early. Each command has --help.")
 
 
@@ -58,6 +59,7 @@ def build_parser():
     track.register(sub)
     tools.register(sub)
     objects.register(sub)
+    cache.register(sub)
     return parser
 
 

@@ -67,7 +67,7 @@ def run(args):
     start = time.perf_counter()
     if scanned is None:
         model = model_or_mesh(args.mesh, bins=args.bins, bounds=args.bounds, fix_normals=args.fix_normals,
-                              max_span=args.max_span)
+                              max_span=args.max_span, cache=False)  # asked to build: built, not read
     else:
         kwargs = {k: v for k, v in (("bins", args.bins), ("bounds", args.bounds)) if v is not None}
         model = ObjectModel.from_mesh(scanned.mesh, fix_normals=args.fix_normals, max_span=args.max_span, **kwargs)

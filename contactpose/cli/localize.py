@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 from contactpose.cli.common import (
-    EXIT_NO_HYPOTHESIS,
     EXIT_OK,
+    EXIT_STRICT,
     add_noise_options,
     add_parser,
     is_model_file,
@@ -14,11 +14,24 @@ from contactpose.cli.common import (
 )
 from contactpose.io import jsonfiles
 from contactpose.localize import DEFAULT_TIME_LIMIT, localize
-from contactpose.options import KEEP, METHODS, ROBUST, SOLVERS
+from contactpose.options import KEEP, METHODS, OUTLIER_PENALTY, ROBUST, SOLVERS, fit_threshold
+from contactpose.scoring.status import DIAGNOSED
 from contactpose.stages import POOR_FIT_LISTED
 
 #: The robust kernel when --robust is not given (None in the parser, to tell a given value).
 DEFAULT_ROBUST = library_default(localize, "robust")
+#: Hypotheses the factor graph refines when --refine is not given (0: all).
+DEFAULT_REFINE = library_default(localize, "refine")
+#: What a hypothesis's printed ``cost`` is, by method and solver (``chi2`` is always the whitened fit).
+COST_MEANING = {
+    ("fast", "closed-form"): "the ranking cost, here chi2 itself",
+    ("fast", "lm"): "the ranking cost, here chi2 itself",
+    ("fast", "factor-graph"): "the ranking cost, here -log Laplace evidence of the refined pose (unitless)",
+    ("paper", "closed-form"): "the ranking cost, here eq. (7)'s L, unweighted (normal terms unitless, offsets in "
+                              "squared length units)",
+    ("paper", "lm"): "the ranking cost, here eq. (7)'s L, unweighted (normal terms unitless, offsets in squared "
+                     "length units)",
+}
 
 
 def register(sub):
@@ -35,7 +48,12 @@ def register(sub):
                         "the best hypotheses and gives covariances")
     p.add_argument("--robust", choices=ROBUST,
                    help=f"robust kernel of --solver factor-graph and of --samples (default: {DEFAULT_ROBUST})")
+    p.add_argument("--refine", type=int, metavar="K",
+                   help=f"with --solver factor-graph: refine the best K hypotheses (default: {DEFAULT_REFINE}; 0: all)")
     p.add_argument("--max-outliers", type=int, default=0, metavar="Q", help="fingers that may be left unassigned")
+    p.add_argument("--model-error", type=float, default=0.0, metavar="L",
+                   help="extra pair distance tolerance, in mesh units, for a model that differs from the object "
+                        "(a scan, say)")
     p.add_argument("--finger-radius", type=float, metavar="R",
                    help="drop hypotheses that put a contact where no fingertip of this radius fits (default: off)")
     p.add_argument("--surface", action="store_true",
@@ -46,13 +64,14 @@ def register(sub):
     p.add_argument("--top", type=int, metavar="K", help="write only the best K hypotheses with -o (default: all)")
     p.add_argument("--keep", choices=KEEP, default="fitting",
                    help="hypotheses to list: fitting (the best and those that fit within noise; the best "
-                        f"{POOR_FIT_LISTED} when none fits) or all distinct poses (default: fitting)")
+                        f"{POOR_FIT_LISTED} when none fits) or all distinct poses")
     p.add_argument("--fix-normals", action="store_true", help="with a mesh: re-wind its faces outward first")
     p.add_argument("--time-limit", type=float, default=DEFAULT_TIME_LIMIT, metavar="SEC",
                    help="seconds the search may take; past them the hypotheses found so far come back with "
                         "status time_limit (0: no limit)")
     p.add_argument("--strict", action="store_true",
-                   help=f"exit with code {EXIT_NO_HYPOTHESIS} when no hypothesis fits (status no_hypothesis)")
+                   help=f"exit with code {EXIT_STRICT} when the answer is empty or poor (status "
+                        f"{' or '.join(DIAGNOSED)}; the hint and the JSON's diagnosis name the cause)")
     p.add_argument("-o", "--output", metavar="OUT.json", help="write the result as JSON")
     p.set_defaults(func=run)
 
@@ -63,6 +82,8 @@ def warn_options_in_vain(args):
         warn_in_vain("--seed", "without --samples")
     if args.robust is not None and args.solver != "factor-graph" and not args.samples:
         warn_in_vain("--robust", "without --solver factor-graph or --samples")
+    if args.refine is not None and args.solver != "factor-graph":
+        warn_in_vain("--refine", "without --solver factor-graph")
     if args.surface and (args.method == "paper" or args.solver not in (None, "closed-form")):
         warn_in_vain("--surface", "with --method paper or --solver lm|factor-graph (closed form only)")
     if args.keep != "fitting" and not args.output:
@@ -76,7 +97,8 @@ def warn_options_in_vain(args):
 
 
 def run(args):
-    """Localize, print the result, optionally write it as JSON; 0 on success (3 with --strict and no hypothesis)."""
+    """Localize, print the result, optionally write it as JSON; 0 on success (3 with --strict
+    and an empty or poor answer)."""
     model = model_or_mesh(args.model, fix_normals=args.fix_normals)
     contacts = jsonfiles.read_contacts(args.contacts)
     prior = jsonfiles.read_prior(args.prior) if args.prior else None
@@ -85,19 +107,30 @@ def run(args):
                       solver=args.solver, top=args.top, robust=args.robust or DEFAULT_ROBUST,
                       max_outliers=args.max_outliers, samples=args.samples, seed=args.seed,
                       finger_radius=args.finger_radius, time_limit=args.time_limit or None,
-                      surface=args.surface, keep=args.keep)
+                      surface=args.surface, keep=args.keep, model_error=args.model_error,
+                      refine=DEFAULT_REFINE if args.refine is None else args.refine)
     warn_options_in_vain(args)  # after the checks: bad input gets its one error line only
     if args.output:
         jsonfiles.write_json(args.output, result.to_dict())
-    print_result(result)
-    return EXIT_NO_HYPOTHESIS if args.strict and result.status == "no_hypothesis" else EXIT_OK
+    print_result(result, contacts.n)
+    return EXIT_STRICT if args.strict and result.status in DIAGNOSED else EXIT_OK
 
 
-def print_result(result):
+def print_result(result, n):
+    """The answer in a few lines, every number with its unit. n : the number of contacts."""
     print(f"status: {result.status}" + (f" ({result.hint})" if result.hint else ""))
-    print(f"hypotheses: {result.num_hypotheses}  time: {result.timing['total'] * 1000:.2f} ms")
-    if result.best is not None:
-        b = result.best
-        print(f"best facets: {b.facets.tolist()}  cost: {b.cost:.4g}")
-        for row in b.pose:
-            print("  " + " ".join(f"{v: .6f}" for v in row))
+    if result.diagnosis is not None:
+        print(f"cause: {result.diagnosis.cause}")
+    took = f"  diagnosis: {result.timing['diagnose'] * 1000:.2f} ms" if "diagnose" in result.timing else ""
+    print(f"hypotheses: {result.num_hypotheses}  time: {result.timing['total'] * 1000:.2f} ms{took}")
+    if result.best is None:
+        return
+    b = result.best
+    print(f"best facets: {b.facets.tolist()}" + (f"  outliers: {b.outliers.tolist()}" if len(b.outliers) else ""))
+    print(f"  chi2: {b.chi2:.4g}  cost: {b.cost:.4g}")
+    outliers = f", plus {OUTLIER_PENALTY:g} per unassigned finger" if len(b.outliers) else ""
+    print(f"  (chi2: the contacts' squared residuals over the stated noise, unitless{outliers}; it fits within "
+          f"noise up to {fit_threshold(n):.3g}. cost: {COST_MEANING[result.method, result.solver]})")
+    print("  pose T_world_object (rotation | translation in mesh units):")
+    for row in b.pose:
+        print("  " + " ".join(f"{v: .6f}" for v in row))

@@ -10,6 +10,9 @@ from contactpose.io import jsonfiles, output
 from contactpose.localize import localize
 from contactpose.tracking.next_touch import suggest_touch
 
+#: Classes less probable than this are left out of the printed outcomes (the JSON has them all).
+LISTED_PROBABILITY = 0.01
+
 
 def register(subparsers):
     """Add ``next-touch MODEL_OR_MESH --contacts CONTACTS.json [...]``; handler :func:`run`."""
@@ -34,18 +37,33 @@ def run(args):
     result = localize(model, contacts, position_noise=args.position_noise, normal_noise_deg=args.normal_noise_deg)
     touch = suggest_touch(model, result, rng=np.random.default_rng(args.seed), contacts=contacts,
                           n_candidates=args.candidates)
-    classes = len(result.classes)
-    print(f"status: {result.status}  pose classes: {classes}"
-          + (f" (probabilities {', '.join(f'{p:.2f}' for p in touch.probabilities)})" if classes > 1 else ""))
-    fmt = lambda v: "[" + ", ".join(f"{x:.6g}" for x in v) + "]"
-    if touch.determined:
-        print("already determined: one pose class fits the contacts, no touch can separate anything; "
-              "the probe below only confirms it")
-    print(f"next touch: point {fmt(touch.point)}  direction {fmt(touch.direction)}")
-    print(f"start: {fmt(touch.start)}  expected gain: {touch.expected_gain:.3f} bits")
-    for c, o in enumerate(touch.outcomes):
-        where = f" at {fmt(o['point'])}" if o["point"] is not None else ""
-        print(f"  class {c}: {o['kind']}{where} (group {o['group']})")
+    print_touch(result, touch)
     if args.output:
         jsonfiles.write_json(args.output, output.next_touch_dict(result, touch))
     return 0
+
+
+def print_touch(result, touch):
+    """The suggestion, and per pose class at least LISTED_PROBABILITY likely what the probe
+    would read; every number with its unit."""
+    fmt = lambda v: "[" + ", ".join(f"{x:.6g}" for x in v) + "]"
+    listed = [c for c, p in enumerate(touch.probabilities) if p >= LISTED_PROBABILITY]
+    print(f"status: {result.status}  pose classes: {len(result.classes)}")
+    if touch.determined:
+        print("already determined: one pose class fits the contacts, no touch can separate anything; "
+              "the probe below only confirms it")
+    print(f"next touch: point {fmt(touch.point)} (mesh units)  direction {fmt(touch.direction)} (unit vector, "
+          "into the object)")
+    print(f"start: {fmt(touch.start)} (mesh units)  expected gain: {touch.expected_gain:.3f} bits")
+    print("what the probe reads under each pose class (p: its probability; classes that read alike are "
+          "not told apart by this probe):")
+    outcomes = touch.outcomes
+    for c in listed:
+        o = outcomes[c]
+        where = f" at {fmt(o['point'])} (mesh units)" if o["point"] is not None else ""
+        alike = [k for k in range(len(outcomes)) if k != c and outcomes[k]["group"] == o["group"]]
+        same = f", reads like class{'es' if len(alike) > 1 else ''} {', '.join(map(str, alike))}" if alike else ""
+        print(f"  class {c} (p {touch.probabilities[c]:.2f}): {o['kind']}{where}{same}")
+    left = len(outcomes) - len(listed)
+    if left:
+        print(f"  {left} class{'es' if left > 1 else ''} below p {LISTED_PROBABILITY:g} not listed")

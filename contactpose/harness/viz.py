@@ -22,29 +22,40 @@ def transform(T, points):
     return points @ T[:3, :3].T + T[:3, 3]
 
 
-def plot_localization(model, contacts, pose, path, *, true_pose=None, title="", costs=None, threshold=None):
+#: Share of the figure's height below the panels that holds the legend.
+LEGEND_HEIGHT = 0.1
+
+
+def plot_localization(model, contacts, pose, path, *, true_pose=None, title="", costs=None, threshold=None,
+                      length_unit="m"):
     """Save a PNG: the estimate shaded, the truth as a wireframe over it, the contacts with
-    their finger normals drawn from outside the object toward each contact, a legend, and
-    (with ``costs``) a panel of the hypotheses' costs.
+    their finger normals drawn from outside the object toward each contact, on axes of one
+    scale, and (with ``costs``) a panel of the hypotheses' costs; one legend below the panels,
+    covering none of them.
 
     pose, true_pose : (4, 4) T_world_object; contacts in the world frame; costs : dict
-    label -> (H,) costs of the ranked hypotheses (χ²); threshold : the fit threshold line.
+    label -> (H,) costs of the ranked hypotheses (χ²); threshold : the fit threshold line;
+    length_unit : the axes' label unit.
     """
-    fig = plt.figure(figsize=(10.5 if costs else 6.4, 5.2), dpi=130)
-    ax = fig.add_subplot(1, 2 if costs else 1, 1, projection="3d")
+    fig = plt.figure(figsize=(11.0 if costs else 6.4, 5.6), dpi=130)
+    grid = fig.add_gridspec(1, 2, width_ratios=(1.35, 1.0)) if costs else fig.add_gridspec(1, 1)
+    ax = fig.add_subplot(grid[0], projection="3d")
     ax.computed_zorder = False  # draw in the order added: surfaces first, contacts on top
     _draw_object(ax, model, pose, true_pose)
-    _draw_contacts(ax, contacts, 0.25 * model.diameter)
-    _equal_axes(ax, np.vstack([transform(pose, model.vertices), contacts.points]))
+    length = 0.25 * model.diameter
+    _draw_contacts(ax, contacts, length)
+    tails = contacts.points - length * contacts.finger_normals
+    _equal_axes(ax, np.vstack([transform(pose, model.vertices), contacts.points, tails]))
     ax.view_init(*_view_angles(contacts))
     for set_label, name in zip((ax.set_xlabel, ax.set_ylabel, ax.set_zlabel), "xyz"):
-        set_label(f"{name} [m]", fontsize=8)
+        set_label(f"{name} [{length_unit}]", fontsize=8)
     ax.tick_params(labelsize=7)
     fig.suptitle(title, fontsize=10)
-    ax.legend(handles=_legend(true_pose is not None), loc="upper left", fontsize=8, framealpha=0.9)
+    handles = _legend(true_pose is not None)
     if costs:
-        _plot_costs(fig.add_subplot(1, 2, 2), costs, threshold)
-    fig.tight_layout()
+        handles += _plot_costs(fig.add_subplot(grid[1]), costs, threshold)
+    fig.legend(handles=handles, loc="lower center", ncol=min(len(handles), 4), fontsize=8, frameon=False)
+    fig.tight_layout(rect=(0.0, LEGEND_HEIGHT, 1.0, 0.96))
     fig.savefig(path)
     plt.close(fig)
     return path
@@ -78,34 +89,48 @@ def _legend(with_truth):
 
 
 def _plot_costs(ax, costs, threshold):
-    """The ranked hypotheses' costs per method, with the fit threshold."""
+    """The ranked hypotheses' costs per method, with the fit threshold, every marker inside
+    the frame. -> the legend handles"""
+    handles, top, count = [], 1.0 if threshold is None else threshold, 1
     for (label, values), (marker, size) in zip(costs.items(), (("o", 9), ("s", 4), ("^", 4))):
         values = np.asarray(values, dtype=float)
-        ax.plot(np.arange(1, len(values) + 1), values, marker, ms=size, mfc="none" if size > 5 else None,
-                label=f"{label} ({len(values)} hypotheses)")
+        n = len(values)
+        handles += ax.plot(np.arange(1, n + 1), values, marker, ms=size, mfc="none" if size > 5 else None,
+                           label=f"{label} ({n} hypothes{'i' if n == 1 else 'e'}s)")
+        top, count = max([top, *values[np.isfinite(values)]]), max(count, n)
     if threshold is not None:
-        ax.axhline(threshold, color="0.3", ls="--", lw=0.8, label=f"fits within noise: χ² ≤ {threshold:.3g}")
+        handles.append(ax.axhline(threshold, color="0.3", ls="--", lw=0.8,
+                                  label=f"fits within noise: χ² ≤ {threshold:.3g}"))
     ax.set_yscale("symlog", linthresh=1.0)  # a perfect fit (χ² = 0) stays on the plot
-    ax.set_ylim(bottom=0.0)
+    ax.set_ylim(-0.5, 10.0 ** (np.log10(max(top, 1.0)) + 0.5))  # half a decade above the highest marker
+    ax.set_xlim(0.4, count + 0.6)
+    ax.set_xticks(np.arange(1, count + 1) if count <= 12 else ax.get_xticks())
     ax.set_xlabel("hypothesis rank", fontsize=8)
-    ax.set_ylabel("χ² of the contacts (whitened)", fontsize=8)
+    ax.set_ylabel("χ² of the contacts (whitened, unitless)", fontsize=8)
     ax.set_title("hypotheses, best first", fontsize=9)
     ax.tick_params(labelsize=7)
-    ax.legend(fontsize=7)
+    return handles
 
 
 def _view_angles(contacts):
     """(elev, azim) in degrees looking at the contacts from outside, from the side of their
-    mean outward normal, raised or lowered by at most 20° so the object keeps its depth."""
+    mean outward normal, raised or lowered by 20° to 35° so the object keeps its depth and
+    its outline."""
     v = -contacts.finger_normals.mean(axis=0)
     if np.linalg.norm(v[:2]) < 1e-6:
         return 25.0, -60.0
     elev = np.degrees(np.arctan2(v[2], np.linalg.norm(v[:2])))
-    return float(np.clip(elev, -20.0, 20.0)), float(np.degrees(np.arctan2(v[1], v[0])))
+    return float(np.copysign(np.clip(abs(elev), 20.0, 35.0), elev)), float(np.degrees(np.arctan2(v[1], v[0])))
 
 
-def _equal_axes(ax, points):
+def _equal_axes(ax, points, least=0.3, pad=0.04):
+    """Limits around the points with one length scale on every axis: each axis spans its
+    points' range plus ``pad`` of the largest (at least ``least`` of the largest, so a flat
+    object keeps a visible depth), and the box's sides are in proportion to those spans."""
     lo, hi = points.min(axis=0), points.max(axis=0)
-    centre, half = (lo + hi) / 2, (hi - lo).max() / 2 * 1.05
-    for set_lim, c in zip((ax.set_xlim, ax.set_ylim, ax.set_zlim), centre):
-        set_lim(c - half, c + half)
+    largest = (hi - lo).max()
+    half = np.maximum(hi - lo, least * largest) / 2 + pad * largest
+    centre = (lo + hi) / 2
+    for set_lim, c, h in zip((ax.set_xlim, ax.set_ylim, ax.set_zlim), centre, half):
+        set_lim(c - h, c + h)
+    ax.set_box_aspect(half / half.max(), zoom=1.2)

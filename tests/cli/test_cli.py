@@ -192,7 +192,8 @@ def test_next_touch_suggests_a_probe_that_touches_the_best_pose(tmp_path, capsys
     text = capsys.readouterr().out
     data = json.loads(out.read_text())
     touch, pose = data["touch"], np.array(data["classes"][0]["pose"])
-    assert data["status"] == "ok" and re.search(r"^next touch: point \[.+\]  direction \[.+\]$", text, re.M)
+    assert data["status"] == "ok" and re.search(r"^next touch: point \[.+\] \(mesh units\)  direction \[.+\] "
+                                                r"\(unit vector, into the object\)$", text, re.M)
     # independent check: trimesh's ray cast against the banana placed at the best pose
     posed = objects.load("banana").apply_transform(pose)
     hits, _, faces = posed.ray.intersects_location([touch["start"]], [touch["direction"]])

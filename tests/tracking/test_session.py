@@ -1,13 +1,15 @@
 """TouchSession: touches added one by one against localize of all contacts at once
-(static object), and against a TrackSet driven by hand (held object)."""
+(static object); for a held object against a TrackSet driven by hand, against the truth and
+against batch LM on the same graph; and its suggested touch against trimesh's ray cast."""
 
 import json
 
 import numpy as np
 import pytest
+import trimesh
 
 from contactpose import ContactPoseError, Contacts, ObjectModel, TouchSession, localize
-from contactpose.geometry.metrics import rotation_error_deg
+from contactpose.geometry.metrics import rotation_error_deg, translation_error
 from contactpose.sim import grasps as simulate
 from contactpose.tracking.session import relocalizer
 from contactpose.tracking.track import TrackSet
@@ -161,3 +163,67 @@ def test_held_object_needs_a_determined_pose_first(carton_model):
     session.add(g.contacts)
     with pytest.raises(ContactPoseError, match="leave the pose free"):
         session.add(g.contacts.transformed(np.eye(4)), hand_motion=(np.eye(4), 1.0, 0.001))
+
+
+def test_held_session_follows_the_truth_and_batch_lm(rock_model):
+    """Three held sequences on the rock (a first grasp of 4 contacts, then 10 hand motions of
+    about 10° and 5 % of the diameter with a slip of 1° and 1 %, 2 contacts each). After every
+    touch the session's best pose is near the truth, and as near as Levenberg–Marquardt on the
+    best track's whole graph (PoseTrack.batch) gets; every track listed carries its covariance;
+    iterated to convergence the track is that batch solution. (The session takes one or two
+    Gauss–Newton steps per touch, so it may trail the batch optimum a little.)"""
+    d = rock_model.diameter
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        g = simulate.grasp(rock_model, rng, n=4, **_noise(rock_model))
+        session = TouchSession(rock_model, **_noise(rock_model))
+        session.add(g.contacts)
+        X, errors = g.pose, []
+        for _ in range(10):
+            delta = _motion(rng, 10.0, 0.05 * d)
+            X = delta @ X @ _motion(rng, 1.0, 0.01 * d)
+            touch = simulate.grasp(rock_model, rng, n=2, pose=X, **_noise(rock_model)).contacts
+            r = session.add(touch, hand_motion=(delta, 1.0, 0.01 * d))
+            assert all(h.covariance is not None and h.covariance.shape == (6, 6) for h in r.hypotheses)
+            batch = session.tracks.best.batch()[-1]
+            errors.append((rotation_error_deg(r.best.pose, X), translation_error(r.best.pose, X),
+                           rotation_error_deg(batch, X), translation_error(batch, X)))
+        e = np.array(errors)
+        median = np.median(e, axis=0)
+        assert e[:, 0].max() < 5.0 and median[0] < 2.0 and median[1] < 0.015 * d, (seed, e)
+        assert median[0] < 1.5 * median[2] + 0.1 and median[1] < 1.5 * median[3] + 0.001 * d, (seed, median)
+        track = session.tracks.best
+        converged, batch = track.relinearize(), track.batch()
+        assert np.abs(converged[:, :3, :3] - batch[:, :3, :3]).max() < 1e-6
+        assert np.abs(converged[:, :3, 3] - batch[:, :3, 3]).max() < 1e-6 * d
+
+
+def test_suggest_touch_separates_the_classes(rock_model):
+    """Three contacts on the rock leave several pose classes. The probe the session suggests
+    predicts, under each class's pose, the contact trimesh's ray cast finds there; touching the
+    object at its true pose along that probe (trimesh again) leaves fewer classes, the best at
+    the truth."""
+    noise = dict(position_noise=0.001, normal_noise_deg=2.0)
+    g = simulate.grasp(rock_model, np.random.default_rng(3), n=3, position_noise=0.0005, normal_noise_deg=1.0)
+    session = TouchSession(rock_model, **noise)
+    for k in range(3):
+        before = session.add(g.contacts.permuted([k]))
+    assert before.status == "ambiguous" and len(before.classes) > 2
+    touch = session.suggest_touch(rng=np.random.default_rng(0), n_candidates=50)
+    mesh = trimesh.Trimesh(rock_model.vertices, rock_model.faces, process=False)
+    for c, cls in enumerate(before.classes):
+        if touch.outcomes[c]["kind"] == "contact":
+            hit = _first_hit(mesh, cls.pose, touch.start, touch.direction)
+            np.testing.assert_allclose(hit[0], touch.outcomes[c]["point"], atol=1e-6)
+    point, normal = _first_hit(mesh, g.pose, touch.start, touch.direction)
+    after = session.add(Contacts(point[None], object_normals=normal[None]))
+    assert len(after.classes) < len(before.classes)
+    assert rotation_error_deg(after.classes[0].pose, g.pose) < 5.0
+
+
+def _first_hit(mesh, pose, start, direction):
+    """(point, outward face normal) where a ray first meets the mesh placed at pose (trimesh)."""
+    posed = mesh.copy().apply_transform(pose)
+    hits, _, faces = posed.ray.intersects_location([start], [direction])
+    first = np.argmin(np.linalg.norm(hits - start, axis=1))
+    return hits[first], posed.face_normals[faces[first]]
