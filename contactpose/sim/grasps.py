@@ -105,6 +105,28 @@ def grasp(model, rng, *, n=4, pose=None, facets=None, where="area", position_noi
     return Grasp(Contacts(points, object_normals=normals), pose, facets, p_obj)
 
 
+def touch_sequence(model, rng, steps, *, first=4, hand_rot=0.1, hand_trans=0.02, sigma_rot_deg=1.0,
+                   sigma_trans=0.001, **noise):
+    """A SEQ.json document (``contactpose track --sequence``): a first grasp of ``first``
+    contacts, then ``steps`` touches of 1 and 2 contacts in turn, each after a hand motion
+    drawn with per-axis σ ``hand_rot`` (radians) and ``hand_trans`` (length), stated with
+    ``sigma_rot_deg`` and ``sigma_trans``; every step with its true pose. noise : as for
+    :func:`grasp`. -> (document dict, the last true pose (4, 4))"""
+    def step(g):
+        return {"contacts": [{"point": p.tolist(), "finger_normal": n.tolist()}
+                             for p, n in zip(g.contacts.points, g.contacts.finger_normals)],
+                "true_pose": g.pose.tolist()}
+
+    g = grasp(model, rng, n=first, **noise)
+    pose, out = g.pose, [step(g)]
+    for k in range(steps):
+        delta = pose_from(rotvec=hand_rot * rng.normal(size=3), translation=hand_trans * rng.normal(size=3))
+        pose = delta @ pose
+        out.append(dict(step(grasp(model, rng, n=1 + k % 2, pose=pose, **noise)),
+                        hand_motion={"delta": delta.tolist(), "sigma_rot_deg": sigma_rot_deg, "sigma_trans": sigma_trans}))
+    return {"steps": out}, pose
+
+
 def scan(mesh, rng, **options):
     """Simulated range scan of a mesh (see :func:`contactpose.sim.range_scanner.scan`); needs Open3D."""
     from contactpose.sim.range_scanner import scan as _scan

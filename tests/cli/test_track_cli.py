@@ -20,21 +20,9 @@ from contactpose.sim import objects
 NOISE = dict(position_noise=0.0005, normal_noise_deg=1.0)
 
 
-def _contacts(c):
-    return [{"point": p.tolist(), "finger_normal": n.tolist()} for p, n in zip(c.points, c.finger_normals)]
-
-
 def _sequence(model, rng, steps):
     """A first grasp, then touches of 1 or 2 contacts after hand motions of about 6° and 2 cm."""
-    g = simulate.grasp(model, rng, n=4, **NOISE)
-    pose, out = g.pose, [{"contacts": _contacts(g.contacts), "true_pose": g.pose.tolist()}]
-    for k in range(steps):
-        delta = simulate.pose_from(rotvec=0.1 * rng.normal(size=3), translation=0.02 * rng.normal(size=3))
-        pose = delta @ pose
-        touch = simulate.grasp(model, rng, n=1 + k % 2, pose=pose, **NOISE)
-        out.append({"contacts": _contacts(touch.contacts), "true_pose": pose.tolist(),
-                    "hand_motion": {"delta": delta.tolist(), "sigma_rot_deg": 1.0, "sigma_trans": 0.001}})
-    return {"steps": out}, pose
+    return simulate.touch_sequence(model, rng, steps, **NOISE)
 
 
 def test_track_writes_the_trajectory(tmp_path, capsys):
