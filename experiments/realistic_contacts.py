@@ -352,7 +352,7 @@ def ours(s, contacts, truth, noise, cfg, **options):
     start = time.perf_counter()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        r = localize(s.model, contacts, **noise, **options, keep="all")
+        r = localize(s.model, contacts, **noise, **options, keep="all", diagnose=False)  # wall: the search alone
     wall = time.perf_counter() - start
     poses = r.hypotheses.arrays.poses
     if r.method == "fast" and r.status != "time_limit":

@@ -109,7 +109,7 @@ def time_method(model, grasps, method, cap):
     rows = []
     for g in grasps[:WARMUP]:
         warm_up(model, g.contacts, position_noise=POSITION_NOISE, normal_noise_deg=NORMAL_NOISE_DEG, method=method)
-    noise = dict(position_noise=POSITION_NOISE, normal_noise_deg=NORMAL_NOISE_DEG, method=method)
+    noise = dict(position_noise=POSITION_NOISE, normal_noise_deg=NORMAL_NOISE_DEG, method=method, diagnose=False)
     for g in grasps:
         r = localize(model, g.contacts, **noise)
         every = localize(model, g.contacts, **noise, distinct=False) if method == "fast" else r

@@ -201,6 +201,6 @@ def relocalizer(model, tolerance, time_limit=RESEED_TIME_LIMIT, **options):
     def seeds(contacts):
         result = localize(model, contacts, position_noise=tolerance.position_noise,
                           normal_noise_deg=np.degrees(tolerance.normal_noise), keep="all", time_limit=time_limit,
-                          progress=False, **options)
+                          progress=False, diagnose=False, **options)  # its hypotheses only: no diagnosis
         return [(h.facets, h.pose) for h in result.hypotheses if not h.underdetermined and not len(h.outliers)]
     return seeds
