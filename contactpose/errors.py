@@ -46,3 +46,16 @@ def check_count(value, name, *, minimum=1, allow_none=False):
         kind = "a positive integer" if minimum == 1 else f"an integer >= {minimum}"
         raise ContactPoseError(f"{name} must be {kind}{' or None' if allow_none else ''}, got {value!r}")
     return int(value)
+
+
+def check_length(value, name, error=ContactPoseError):
+    """``value`` as a float if it is a positive finite length, else ``error`` naming it."""
+    import math
+
+    try:
+        length = float(value)
+    except (TypeError, ValueError):
+        length = math.nan
+    if not (math.isfinite(length) and length > 0):
+        raise error(f"{name} must be a positive length in the mesh's units, got {value!r}")
+    return length

@@ -20,7 +20,7 @@ import numpy as np
 
 from contactpose import tol
 from contactpose.deferred import deferred
-from contactpose.errors import ContactPoseError, MeshError, ModelFileError
+from contactpose.errors import ContactPoseError, MeshError, ModelFileError, check_length
 from contactpose.io.modelfile import (
     COMPRESS_MIN_BYTES,
     FORMAT_VERSION,
@@ -875,15 +875,7 @@ def _has(data, *prefixes):
 
 
 def _check_span(max_span):
-    if max_span is None:
-        return None
-    try:
-        value = float(max_span)
-    except (TypeError, ValueError):
-        value = float("nan")
-    if not (np.isfinite(value) and value > 0):
-        raise MeshError(f"max_span must be a positive length in the mesh's units, got {max_span!r}")
-    return value
+    return None if max_span is None else check_length(max_span, "max_span", MeshError)
 
 
 def _degenerate_note(planes):
