@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation
+
+from contactpose.geometry.se3 import hat
 
 #: Default top-1 success thresholds: rotation error in degrees, translation error
 #: as a fraction of the object diameter.
@@ -49,11 +52,9 @@ def symmetric_errors(T_est, T_true, rotations, axes=(), centre=None):
     if len(axes) == 1:
         a = axes[0]
         A = np.einsum("...ji,...kjl->...kil", T_est[..., :3, :3], candidates[..., :3, :3])
-        cross = np.array([[0.0, -a[2], a[1]], [a[2], 0.0, -a[0]], [-a[1], a[0], 0.0]])  # [a]×
-        phi = np.arctan2(np.einsum("...ij,ji->...", A, cross),
+        phi = np.arctan2(np.einsum("...ij,ji->...", A, hat(a)),
                          np.trace(A, axis1=-2, axis2=-1) - np.einsum("i,...ij,j->...", a, A, a))
-        turn = np.cos(phi)[..., None, None] * np.eye(3) + np.sin(phi)[..., None, None] * cross \
-            + (1.0 - np.cos(phi))[..., None, None] * np.outer(a, a)
+        turn = Rotation.from_rotvec(phi.reshape(-1, 1) * a).as_matrix().reshape(phi.shape + (3, 3))
         candidates = candidates @ _about(turn, centre)
     rot = rotation_error_deg(T_est[..., None, :, :], candidates)
     best = np.argmin(rot, axis=-1)[..., None]

@@ -278,12 +278,6 @@ def winding_state(merged):
     return "inward" if merged.volume < 0 else "outward"
 
 
-def winding_report(merged):
-    """Check face winding of a vertex-merged mesh. A message if normals look inward or
-    inconsistent, else None."""
-    return WINDING_PROBLEMS.get(winding_state(merged))
-
-
 def rewind_outward(vertices, faces):
     """Faces re-wound consistently outward with trimesh's repair, in the same order.
 
@@ -364,7 +358,7 @@ class ObjectModel:
         bins = check_bins(bins)
         max_span = _check_span(max_span)
         start = time.perf_counter()
-        known = getattr(mesh, "metadata", {}).get(KNOWN_DEFECTS) if isinstance(mesh, trimesh.Trimesh) else None
+        known = mesh.metadata.get(KNOWN_DEFECTS) if isinstance(mesh, trimesh.Trimesh) else None
         vertices, faces = _load_checked(mesh, fix_normals)
         triangles = vertices[faces]
         planes, diameter = early_planes(triangles, vertices)
