@@ -124,11 +124,11 @@ class Hypothesis:
     """One assignment of fingers to facets and the pose behind it.
 
     facets : (n,) int; pose : (4, 4) T_world_object; cost : ranking cost (χ² for
-    "fast", -log Laplace evidence with the factor graph, eq. (7) ℒ for "paper"); residuals : (n, 5) columns normal x/y/z (world),
-    offset (point-to-plane; the eq. (7) offset for "paper"), lateral (outside the triangle);
-    chi2 : whitened fit; underdetermined : bool; free_translation : (k, 3) world
-    directions; free_rotation : (3,) world axis or None; outliers : fingers left
-    unassigned (facet -1) under ``max_outliers``.
+    "fast", -log Laplace evidence with the factor graph, eq. (7) ℒ for "paper");
+    residuals : (n, 5) columns normal x/y/z (world), offset (point-to-plane; the eq. (7)
+    offset for "paper"), lateral (outside the triangle); chi2 : whitened fit;
+    underdetermined : bool; free_translation : (k, 3) world directions; free_rotation : (3,)
+    world axis or None; outliers : fingers left unassigned (facet -1) under ``max_outliers``.
     """
 
     facets: np.ndarray
