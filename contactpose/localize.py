@@ -39,7 +39,7 @@ __all__ = ["DEFAULT_TIME_LIMIT", "localize", "warm_up"]
 def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prior=None,
              method="fast", solver=None, top=None, model_error=0.0, max_outliers=0, robust="huber",
              refine=DEFAULT_REFINE, samples=0, seed=None, sample_top=1, finger_radius=None,
-             time_limit=DEFAULT_TIME_LIMIT, progress=None, distinct=True, surface=False, keep="fitting", tree=None,
+             time_limit=DEFAULT_TIME_LIMIT, progress=None, distinct=True, surface="auto", keep="fitting", tree=None,
              diagnose=True):
     """Find every admissible finger-to-facet assignment and the object pose behind each.
 
@@ -69,7 +69,10 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
     contact model, where a contact may lie on an edge or vertex with its normal in that
     feature's normal cone (solvers.surface, research/surface.md; "fast" with the closed form
     and distinct poses only: ``distinct=False`` lists facet assignments, each posed on its
-    facets). Off by default: it costs 5-15 ms per refined hypothesis. The samples use the
+    facets). "auto" (default): on a model of surface regions (``model.has_regions``: fine
+    meshes, where it lowers the pose error and turns most poor fits of rounded fingertips into
+    fits, research/surface.md), off on a facet table (coarse meshes, where it does not help);
+    it costs 1.6 ms per fitted hypothesis, SURFACE_REFINE of them at most. The samples use the
     surface contact model's posterior with ``surface`` or on a model of surface regions
     (``model.has_regions``), where the facet posterior is far too narrow (research/surface.md).
     keep : "fitting" lists, of the distinct poses, the best and those that fit the contacts
@@ -86,6 +89,7 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
     (``result.diagnosis`` None), for sweeps that only count statuses.
     """
     method, solver = _check_options(method, solver, top, contacts, prior, tree)
+    surface = _check_surface(surface, model)
     if keep not in KEEP:
         raise ContactPoseError(f"keep must be one of {KEEP}, got {keep!r}")
     deadline = Deadline(_check_time_limit(time_limit))
@@ -185,6 +189,15 @@ def _check_options(method, solver, top, contacts, prior, tree):
     if tree is not None and method != "fast":
         raise ContactPoseError(f"tree extends a search of method 'fast'; method={method!r} grows its own tree")
     return method, solver
+
+
+def _check_surface(surface, model):
+    """True or False from ``surface`` (True, False or "auto": whether the model has surface regions)."""
+    if isinstance(surface, str) and surface == "auto":
+        return model.has_regions
+    if not isinstance(surface, (bool, np.bool_)):
+        raise ContactPoseError(f"surface must be True, False or 'auto', got {surface!r}")
+    return bool(surface)
 
 
 def _check_outliers(max_outliers, method, n):

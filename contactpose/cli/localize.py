@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import argparse
+
 from contactpose.cli.common import (
     EXIT_OK,
     EXIT_STRICT,
@@ -56,9 +58,10 @@ def register(sub):
                         "(a scan, say)")
     p.add_argument("--finger-radius", type=float, metavar="R",
                    help="drop hypotheses that put a contact where no fingertip of this radius fits (default: off)")
-    p.add_argument("--surface", action="store_true",
+    p.add_argument("--surface", action=argparse.BooleanOptionalAction, default=None,
                    help="pose the best hypotheses on the surface contact model: contacts may lie on edges and "
-                        "vertices, their normals in those features' normal cones (method fast, closed form)")
+                        "vertices, their normals in those features' normal cones (method fast, closed form; "
+                        "default: on a model of surface regions, off on a facet table)")
     p.add_argument("--samples", type=int, default=0, metavar="N", help="posterior samples of the best pose (emcee)")
     p.add_argument("--seed", type=int, metavar="S", help="seed for --samples (default: a fresh one each run)")
     p.add_argument("--top", type=int, metavar="K", help="write only the best K hypotheses with -o (default: all)")
@@ -84,7 +87,7 @@ def warn_options_in_vain(args):
         warn_in_vain("--robust", "without --solver factor-graph or --samples")
     if args.refine is not None and args.solver != "factor-graph":
         warn_in_vain("--refine", "without --solver factor-graph")
-    if args.surface and (args.method == "paper" or args.solver not in (None, "closed-form")):
+    if args.surface is not None and (args.method == "paper" or args.solver not in (None, "closed-form")):
         warn_in_vain("--surface", "with --method paper or --solver lm|factor-graph (closed form only)")
     if args.keep != "fitting" and not args.output:
         warn_in_vain("--keep", "without -o (the printed result shows the best hypothesis only)")
@@ -107,7 +110,7 @@ def run(args):
                       solver=args.solver, top=args.top, robust=args.robust or DEFAULT_ROBUST,
                       max_outliers=args.max_outliers, samples=args.samples, seed=args.seed,
                       finger_radius=args.finger_radius, time_limit=args.time_limit or None,
-                      surface=args.surface, keep=args.keep, model_error=args.model_error,
+                      surface="auto" if args.surface is None else args.surface, keep=args.keep, model_error=args.model_error,
                       refine=DEFAULT_REFINE if args.refine is None else args.refine)
     warn_options_in_vain(args)  # after the checks: bad input gets its one error line only
     if args.output:

@@ -268,6 +268,33 @@ def test_has_regions_only_when_patches_grown_above_the_coplanar_tolerance_are_se
     assert not ObjectModel.from_mesh(objects.load("carton")).has_regions     # patches of flat faces
 
 
+def test_surface_auto_fits_on_the_surface_on_a_model_of_regions_only():
+    """localize's default surface="auto": an edge grasp on a model of surface regions is posed
+    on the surface contact model (the answer of surface=True, a lower χ² than the facets'),
+    on a facet table as by the facets (surface=False); any other value is one clear error."""
+    from contactpose import localize
+    from contactpose.errors import ContactPoseError
+
+    rng = np.random.default_rng(3)
+    regions = ObjectModel.from_mesh(objects.load("rock1k"), patch_tol_deg=10.0)
+    facets = ObjectModel.from_mesh(objects.load("rock1k"))
+    assert regions.has_regions and not facets.has_regions
+    pose = np.eye(4)
+    pose[:3, :3] = Rotation.from_rotvec([0.2, -0.6, 0.3]).as_matrix()
+    contacts, _ = _edge_grasp(regions, rng, 0.05 * regions.diameter, pose)
+    sx = 0.002 * regions.diameter
+    for model, same in ((regions, True), (facets, False)):
+        auto = localize(model, contacts, position_noise=sx, diagnose=False)
+        fixed = localize(model, contacts, position_noise=sx, diagnose=False, surface=same)
+        other = localize(model, contacts, position_noise=sx, diagnose=False, surface=not same)
+        assert np.array_equal(auto.hypotheses.arrays.poses, fixed.hypotheses.arrays.poses)
+        assert np.array_equal(auto.hypotheses.arrays.chi2, fixed.hypotheses.arrays.chi2)
+        on, off = (auto, other) if same else (other, auto)
+        assert on.hypotheses.arrays.chi2[0] < off.hypotheses.arrays.chi2[0]
+    with pytest.raises(ContactPoseError, match="surface must be True, False or 'auto', got 'yes'"):
+        localize(facets, contacts, surface="yes")
+
+
 def test_surface_factor_jacobian_is_the_pose3_tangent_derivative():
     """The GTSAM factor of χ²_S: its error is the residual of SurfaceResiduals at the pose, and its
     Jacobian matches central differences through Pose3.retract (rotation first), wherever no
