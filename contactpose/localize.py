@@ -59,7 +59,9 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
     seed makes the sampling repeatable. finger_radius : drop the hypotheses that put a
     contact where no finger of this radius fits (its outward normal ray of that length
     re-enters the posed object: contactpose.scoring.freespace); underdetermined hypotheses are
-    kept, since their pose is one arbitrary member of a family. time_limit : seconds for the
+    kept, since their pose is one arbitrary member of a family; on a facet table, a poor fit
+    of rounded fingertips is searched again over the facets, sharp edges and vertices
+    (stages.edge_hypotheses; an empty answer always is). time_limit : seconds for the
     search (None: unbounded); when it runs out, the hypotheses found so far are returned with
     status "time_limit". progress : tqdm bars (None: on a terminal, for work over a second).
     distinct : list one hypothesis per distinct pose, the best of its near-copies (assignments
@@ -105,7 +107,7 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
     if fast:
         arrays, timing, grown, widened = stages.find_hypotheses(
             model, contacts, tolerance, solver="closed-form" if solver == "factor-graph" else solver, prior=prior,
-            max_outliers=max_outliers, deadline=deadline, progress=progress, tree=tree)
+            max_outliers=max_outliers, deadline=deadline, progress=progress, tree=tree, finger_radius=finger_radius)
         notes = (widened,)
     else:
         arrays, timing = paper.search(model, contacts, tolerance, solver=solver, prior=prior, deadline=deadline,

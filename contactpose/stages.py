@@ -23,7 +23,7 @@ from itertools import combinations
 import numpy as np
 
 from contactpose.costs.association import fitting_members, nearest_fit_facets
-from contactpose.options import DEFAULT_REFINE, OUTLIER_PENALTY, fit_threshold
+from contactpose.options import DEFAULT_REFINE, FIT_CONFIDENCE, OUTLIER_PENALTY, chi2_quantile, fit_threshold
 from contactpose.progress import Deadline
 from contactpose.scoring import evidence, refine
 from contactpose.scoring import rank as ranking
@@ -35,10 +35,17 @@ from contactpose.search.tree import join_tuples
 from contactpose.solvers.closed_form import fit_poses
 from contactpose.solvers.lm import fit_lm_all
 from contactpose.solvers.polish import polished
-from contactpose.solvers.surface import surface_poses
+from contactpose.solvers.surface import SURFACE_REFINE, surface_poses
 
 #: When nothing matches, the pair tolerances are widened by these factors in turn.
 WIDEN_SCHEDULE = (1.5, 2.0)
+#: The note of an answer from the search over facets, sharp edges and vertices (edge_hypotheses).
+EDGES_NOTE = ("no facet tuple fit the contacts' normals within noise: searched again over the facets, sharp edges "
+              "and vertices (a fingertip on a sharp edge), the best poses fitted on the surface contact model")
+#: The edges' search needs contacts spread wider than this many pair distance gates.
+EDGES_MIN_SPREAD = 2.0
+#: Hypotheses of that search posed on the surface contact model (solvers.surface.surface_poses).
+EDGE_REFINE = 16
 #: Share of the time left that the tree may take; the poses and ranking get the rest.
 TREE_SHARE = 0.25
 #: Seconds the distinct-pose grouping may always take, even once the time limit has passed;
@@ -53,22 +60,27 @@ SEARCH_STAGES = ("pairs", "tree", "pose", "rank")
 
 __all__ = ["POOR_FIT_LISTED", "SEARCH_STAGES", "classify", "distinct", "find_hypotheses",
            "join_hypotheses", "listed", "listed_rows", "polish_hypotheses", "pose_hypotheses", "rank_hypotheses",
-           "refine_hypotheses", "search", "surface_hypotheses"]
+           "refine_hypotheses", "search", "surface_hypotheses", "edge_hypotheses"]
 
 
 # ------------------------------------------------------------------ search ---
 
 def find_hypotheses(model, contacts, tolerance, *, solver="closed-form", prior=None, max_outliers=0, deadline=None,
-                    progress=None, tree=None):
+                    progress=None, tree=None, finger_radius=None):
     """Every hypothesis of the default method: :func:`search` of all contacts, then of every
     subset that leaves 1..max_outliers fingers unassigned (facet -1, OUTLIER_PENALTY each, their
     contacts out of the pose), and, when nothing matched, of all contacts with the pair
     tolerances widened by each factor of WIDEN_SCHEDULE in turn (3σ gates become 4.5σ, then
     6σ), until one finds hypotheses, the time limit passes or the contacts could not fit even
     the widest gate: Gaussian noise has tails beyond any fixed gate, and one reading at 4σ must
-    not empty the answer. solver : as for :func:`pose_hypotheses`. -> (HypothesisArrays
-    ranked, seconds per stage (SEARCH_STAGES), the SearchTree of all contacts or None, a note
-    on the widening or "")"""
+    not empty the answer. Then, on a model with a facet table, when no hypothesis fits within
+    noise and an edge may be why (:func:`_edges_may_help`: none at all; or, with a
+    ``finger_radius`` stated, the normals are what does not fit), all contacts are
+    searched again at the stated noise over its facets, sharp edges and vertices
+    (:func:`edge_hypotheses`); its hypotheses join the answer when one of them fits within noise.
+    solver : as for :func:`pose_hypotheses`. -> (HypothesisArrays ranked, seconds per stage
+    (SEARCH_STAGES), the SearchTree of all contacts or None, a note on the widening or the
+    edges' search or "")"""
     deadline = deadline or Deadline()
     every = np.arange(contacts.n)
     subsets = [every] + [np.setdiff1d(every, c) for q in range(1, max_outliers + 1) for c in combinations(every, q)]
@@ -90,10 +102,63 @@ def find_hypotheses(model, contacts, tolerance, *, solver="closed-form", prior=N
             arrays = found
             widened = (f"nothing matched at the stated noise: the pair tolerances were widened {factor:g}x "
                        f"(distance ±{gates.distance:.3g}, angle ±{np.degrees(gates.angle):.3g}°)")
+    if _edges_may_help(model, contacts, tolerance, arrays, deadline, finger_radius):
+        found = edge_hypotheses(model, contacts, tolerance, timing, solver=solver, prior=prior, deadline=deadline,
+                                progress=progress)
+        if np.any(found.chi2 <= fit_threshold(contacts.n)):
+            arrays = arrays.merged(found)
+            arrays = arrays.take(np.sort(np.unique(arrays.facets, axis=0, return_index=True)[1]))
+            widened = EDGES_NOTE
     return arrays, timing, grown, widened
 
 
-def search(model, contacts, tolerance, *, solver="closed-form", prior=None, deadline=None, progress=None, tree=None):
+def _edges_may_help(model, contacts, tolerance, arrays, deadline, finger_radius=None):
+    """Whether the search over facets, sharp edges and vertices should run (find_hypotheses):
+    a model with a facet table, time left, no hypothesis that fits within noise, contacts
+    spread wider than EDGES_MIN_SPREAD pair distance gates (closer ones fit any vertex whose
+    cone holds their normals), and either no hypothesis at all, or rounded fingertips stated
+    (``finger_radius`` > 0: a point contact lands on an edge almost never, a rounded one often)
+    and a best hypothesis (least χ²) whose position rows fit within noise (their χ² within the
+    FIT_CONFIDENCE quantile of n degrees of freedom) and whose normal rows do not: the normals
+    are what does not fit, as on an edge, not a finger off the object. Without a stated
+    radius a poor fit keeps its diagnosis: cones wide enough for an edge also absorb a noise
+    stated too small."""
+    if model.table is None or deadline.passed or contacts.spread <= EDGES_MIN_SPREAD * tolerance.distance:
+        return False
+    n = contacts.n
+    if np.any(arrays.chi2 <= fit_threshold(n)):
+        return False
+    if not len(arrays.cost):
+        return True
+    if not finger_radius:
+        return False
+    residuals = arrays.residuals[np.argmin(arrays.chi2)]
+    position = np.nansum(residuals[:, 3:] ** 2) / tolerance.position_noise**2
+    normal = np.nansum(residuals[:, :3] ** 2) / tolerance.normal_noise**2
+    return bool(position <= chi2_quantile(FIT_CONFIDENCE, n) < normal)
+
+
+def edge_hypotheses(model, contacts, tolerance, timing, *, solver="closed-form", prior=None, deadline=None,
+                    progress=None):
+    """The hypotheses of :func:`search` over the model's facets, sharp edges and vertices
+    (model.units) at ``tolerance``, one per distinct pose, the best EDGE_REFINE posed on the
+    surface contact model (:func:`surface_hypotheses`), so that their χ² charges an edge
+    contact nothing for a normal on its arc; the search's seconds are added to ``timing``. A
+    rounded fingertip on a sharp edge of a coarse mesh has a normal no facet's matches."""
+    deadline = deadline or Deadline()
+    found, more, _ = search(model, contacts, tolerance, solver=solver, prior=prior, deadline=deadline,
+                            progress=progress, edges=True)
+    for k in timing:
+        timing[k] += more[k]
+    start = time.perf_counter()
+    found = surface_hypotheses(model, contacts, distinct(model, found, tolerance, deadline), tolerance, deadline,
+                               EDGE_REFINE)
+    timing["pose"] += time.perf_counter() - start
+    return found
+
+
+def search(model, contacts, tolerance, *, solver="closed-form", prior=None, deadline=None, progress=None, tree=None,
+           edges=False):
     """The default method's stages up to the ranking: S_ij -> tree -> poses -> ranked and
     polished HypothesisArrays.
 
@@ -101,13 +166,15 @@ def search(model, contacts, tolerance, *, solver="closed-form", prior=None, dead
     the poses and the ranking then run POSE_CHUNK hypotheses at a time until it passes
     (``deadline.hit`` tells whether anything stopped early). solver : as for
     :func:`pose_hypotheses`. tree : a SearchTree of the first contacts to extend
-    (search.grow.grow_tree). Returns (HypothesisArrays, seconds per stage: "pairs", "tree",
+    (search.grow.grow_tree). edges : over the facets, sharp edges and vertices (model.units),
+    each tuple posed on its units' representative facets. Returns (HypothesisArrays, seconds per stage: "pairs", "tree",
     "pose", "rank", the SearchTree of these contacts, or None when the deadline cut the tree
     short).
     """
     deadline = deadline or Deadline()
     tree_deadline = Deadline(None if deadline.seconds is None else TREE_SHARE * deadline.remaining())
-    grown, timing = grow_tree(model, contacts, tolerance, tree=tree, deadline=tree_deadline, progress=progress)
+    grown, timing = grow_tree(model, contacts, tolerance, tree=tree, deadline=tree_deadline, progress=progress,
+                              edges=edges)
     deadline.hit |= tree_deadline.hit
     start = time.perf_counter()
     facets = grown.tuples
@@ -197,11 +264,11 @@ def distinct(model, arrays, tolerance, deadline):
     return arrays
 
 
-def surface_hypotheses(model, contacts, arrays, tolerance, deadline):
+def surface_hypotheses(model, contacts, arrays, tolerance, deadline, k=SURFACE_REFINE):
     """The best hypotheses posed on the surface contact model where it fits better than their
     facets (solvers.surface.surface_poses): their facets those the contacts land on, their
     residuals the contact model's; re-ranked, then one per distinct pose (:func:`distinct`)."""
-    rows, fit, facets, landed = surface_poses(model, contacts, arrays, tolerance)
+    rows, fit, facets, landed = surface_poses(model, contacts, arrays, tolerance, k)
     if len(rows):
         moved = ranking.hypothesis_arrays(model, contacts, facets, fit, tolerance, order=False, surface=landed)
         arrays = ranking.replaced(arrays, rows, moved)

@@ -5,7 +5,8 @@ The figures any search over the surface must beat where the facet table is used 
 whose work follows the shape"; research/surface_search.md). The grasps are those of
 experiments/regions_check.py (its ``grasp``: a uniformly random pose, 4 fingertips of radius r,
 cone 30°, Gaussian noise 0.25 % of the diameter and 1°, localize told the noise), seeded per
-object and radius. Per grasp: whether every contact is on a face, the status, the hypotheses
+object and radius; localize is told the fingertips' radius (``finger_radius``). Per grasp:
+whether every contact is on a face, the status, the hypotheses
 listed, whether the best and whether any listed hypothesis is right (rotation < 5° and
 translation < 5 % of the diameter, modulo the object's symmetry group), the best pose's errors
 and the online time. Writes results/coarse_edges/grasps.csv and summary.md, split into
@@ -56,7 +57,7 @@ def run_object(name, grasps, radii):
         rng = np.random.default_rng(CONFIG["base_seed"] + k)
         for g in range(grasps):
             contacts, pose, face_only = grasp(model, vertices, faces, rng, frac * D)
-            result = localize(model, contacts, **noise)
+            result = localize(model, contacts, finger_radius=frac * D, **noise)
             poses = result.hypotheses.arrays.poses
             rot, trans = group.errors(poses, pose) if len(poses) else (np.array([np.inf]), np.array([np.inf]))
             right = (rot < SUCCESS_ROT_DEG) & (trans < SUCCESS_TRANS_FRAC * D)

@@ -319,8 +319,11 @@ def segment_triangle_intersect(p, q, a, b, c):
 
 @njit(cache=True)
 def _edges_cross(u0, u1, u2, v0, v1, v2):
-    """Does an edge of triangle u cross triangle v (non-coplanar)?"""
+    """Does an edge of triangle u cross triangle v (non-coplanar)? Never when v is a segment or a
+    point (v1 = v2, or all three equal: model.units), which has no interior to cross."""
     n = _cross(_sub(v1, v0), _sub(v2, v0))
+    if _dot(n, n) == 0.0:
+        return False
     s0 = _dot(n, _sub(u0, v0))
     s1 = _dot(n, _sub(u1, v0))
     s2 = _dot(n, _sub(u2, v0))

@@ -42,6 +42,7 @@ from contactpose.model.plan import PairPlan
 from contactpose.model.surface import SurfaceTopology
 from contactpose.model.symmetry import Symmetry, remember, symmetry
 from contactpose.model.table import DEFAULT_BINS, STORED_BYTES_PER_PAIR, PairTable, check_bins
+from contactpose.model.units import SearchUnits, unit_features
 
 trimesh = deferred("trimesh")
 
@@ -441,6 +442,18 @@ class ObjectModel:
     def topology(self):
         """SurfaceTopology: the facets at each edge and vertex, for the contact model (model.surface)."""
         return SurfaceTopology.of(merged_mesh(self.vertices, self.faces), self.planes.valid)
+
+    @cached_property
+    def units(self):
+        """SearchUnits: the valid facets, sharp convex edges and vertices (model.units)."""
+        return SearchUnits.of(self)
+
+    @cached_property
+    def unit_table(self):
+        """The pair table over :attr:`units` (model.units.unit_features), built when first asked
+        for, for contacts on sharp edges of a facet-table model; ModelFileError without a facet table."""
+        table = self.facet_table()
+        return PairTable.build(unit_features(self.units), table.bins, self.max_span)
 
     @cached_property
     def facet_radii(self):

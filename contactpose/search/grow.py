@@ -22,47 +22,53 @@ EXPLOSION_TUPLES = 1e6
 EXPLOSION_CHECK_PAIRS = 10_000
 
 
-def grow_tree(model, contacts, tolerance, *, tree=None, deadline=None, progress=None):
+def grow_tree(model, contacts, tolerance, *, tree=None, deadline=None, progress=None, edges=False):
     """S_ij and the tree T over the search units (facets; patches on a model of surface
-    regions). -> (SearchTree, seconds: "pairs", "tree")
+    regions; with ``edges``, on a model with a facet table, its facets, sharp edges and
+    vertices, each tuple then reported once by its units' representative facets: model.units).
+    -> (SearchTree, seconds: "pairs", "tree")
 
     tree : the SearchTree of the first k of these contacts at this tolerance: only the pairs
     (i, j), j >= k, are queried and its tuples grow by contacts k, ..., n-1
     (search.tree.extend_tuples), the same set as the tree of all pairs. Rows are in
     lexicographic order either way, so the stages after the tree see the same input.
     """
-    patches = model.patch_table is not None
-    units = "patches" if patches else "facets"
+    patches = model.patch_table is not None and not edges
+    units = "edges" if edges else "patches" if patches else "facets"
     since = 0 if tree is None else _check_tree(contacts, tolerance, units, tree)
     clock = [time.perf_counter()]
-    S = find_pairs(model, contacts, tolerance, since=since)
+    S = find_pairs(model, contacts, tolerance, patches=patches, since=since, edges=edges)
     clock.append(time.perf_counter())
-    triple = triple_test(model, contacts, tolerance, patches)
+    triple = triple_test(model, contacts, tolerance, patches, edges)
     if since:
         tuples = extend_tuples(tree.tuples, S, contacts.n, triple, deadline=deadline, progress=progress)
     else:
         warn_explosion(S, contacts.n, tolerance, model, triple)
-        tuples = sorted_rows(join_tuples(S, contacts.n, triple, deadline=deadline, progress=progress))
+        tuples = join_tuples(S, contacts.n, triple, deadline=deadline, progress=progress)
+        tuples = sorted_rows(np.unique(model.units.facets[tuples], axis=0) if edges else tuples)
     clock.append(time.perf_counter())
     return SearchTree(contacts, tolerance, units, tuples), dict(zip(("pairs", "tree"), np.diff(clock).tolist()))
 
 
-def find_pairs(model, contacts, tolerance, *, bounds="exact", direction=True, patches=None, since=0):
+def find_pairs(model, contacts, tolerance, *, bounds="exact", direction=True, patches=None, since=0, edges=False):
     """S_ij for every finger pair (i, j), j >= since (eq. 5, then the exact interval test):
     dict (i, j) -> PairSet.
 
     bounds : "exact" (triangle–triangle Δmin, erratum 4) or "paper" (vertex-only Δmin, §3.1);
     direction : the direction constraint of the default method; patches : search the model's
-    patches (None: when it has a patch table).
+    patches (None: when it has a patch table); edges : its facets, sharp edges and vertices.
     """
     conditions = pair_conditions(contacts, since)
     _check_span(model, conditions, tolerance)
     patches = model.patch_table is not None if patches is None else patches
-    return admissible_pairs(model, conditions, tolerance, bounds, direction=direction, patches=patches)
+    return admissible_pairs(model, conditions, tolerance, bounds, direction=direction, patches=patches, edges=edges)
 
 
-def triple_test(model, contacts, tolerance, patches):
-    """The handedness test over the search units (a patch's normal cone as slack)."""
+def triple_test(model, contacts, tolerance, patches, edges=False):
+    """The handedness test over the search units (a patch's or an edge unit's normal cone as slack)."""
+    if edges:
+        return TripleTest(model.units.normals, contacts.object_normals, tolerance.per_contact_bounds()[1],
+                          slack=model.units.cones)
     if patches:
         return TripleTest(model.patches.normals, contacts.object_normals, tolerance.per_contact_bounds()[1],
                           slack=model.patches.cone)

@@ -102,14 +102,18 @@ class PairSet:
         return self._csr[reverse]
 
 
-def admissible_pairs(model, conditions, tolerance, bounds="exact", direction=True, patches=False):
+def admissible_pairs(model, conditions, tolerance, bounds="exact", direction=True, patches=False, edges=False):
     """S_ij for all finger pairs i < j (eq. 5 with ∪, then the exact interval test).
 
     direction : also apply the direction constraint (the default method; not the paper's);
-    patches : over the model's patches instead of its facets.
+    patches : over the model's patches instead of its facets; edges : over its facets, sharp
+    edges and vertices (model.units).
     Returns dict (i, j) -> PairSet.
     """
-    table, m = (model.patch_table, model.patches.count) if patches else (model.facet_table(), model.num_facets)
+    if edges:
+        table, m = model.unit_table, len(model.units)
+    else:
+        table, m = (model.patch_table, model.patches.count) if patches else (model.facet_table(), model.num_facets)
     first, second, cut = table.query_all(conditions, tolerance, bounds, direction)
     S = PairSets({pair: PairSet(first[cut[e]:cut[e + 1]], second[cut[e]:cut[e + 1]], m)
                   for e, pair in enumerate(conditions.pairs)})
