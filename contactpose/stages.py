@@ -103,8 +103,7 @@ def find_hypotheses(model, contacts, tolerance, *, solver="closed-form", prior=N
             widened = (f"nothing matched at the stated noise: the pair tolerances were widened {factor:g}x "
                        f"(distance ±{gates.distance:.3g}, angle ±{np.degrees(gates.angle):.3g}°)")
     if _edges_may_help(model, contacts, tolerance, arrays, deadline, finger_radius):
-        found = edge_hypotheses(model, contacts, tolerance, timing, solver=solver, prior=prior, deadline=deadline,
-                                progress=progress)
+        found = edge_hypotheses(model, contacts, tolerance, timing, prior=prior, deadline=deadline, progress=progress)
         if np.any(found.chi2 <= fit_threshold(contacts.n)):
             arrays = arrays.merged(found)
             arrays = arrays.take(np.sort(np.unique(arrays.facets, axis=0, return_index=True)[1]))
@@ -138,16 +137,16 @@ def _edges_may_help(model, contacts, tolerance, arrays, deadline, finger_radius=
     return bool(position <= chi2_quantile(FIT_CONFIDENCE, n) < normal)
 
 
-def edge_hypotheses(model, contacts, tolerance, timing, *, solver="closed-form", prior=None, deadline=None,
-                    progress=None):
+def edge_hypotheses(model, contacts, tolerance, timing, *, prior=None, deadline=None, progress=None):
     """The hypotheses of :func:`search` over the model's facets, sharp edges and vertices
-    (model.units) at ``tolerance``, one per distinct pose, the best EDGE_REFINE posed on the
+    (model.units) at ``tolerance``, posed by the closed form whatever the solver (the units
+    admit many more tuples than the facets, too many for one LM each), one per distinct pose,
+    the best EDGE_REFINE posed on the
     surface contact model (:func:`surface_hypotheses`), so that their χ² charges an edge
     contact nothing for a normal on its arc; the search's seconds are added to ``timing``. A
     rounded fingertip on a sharp edge of a coarse mesh has a normal no facet's matches."""
     deadline = deadline or Deadline()
-    found, more, _ = search(model, contacts, tolerance, solver=solver, prior=prior, deadline=deadline,
-                            progress=progress, edges=True)
+    found, more, _ = search(model, contacts, tolerance, prior=prior, deadline=deadline, progress=progress, edges=True)
     for k in timing:
         timing[k] += more[k]
     start = time.perf_counter()

@@ -91,9 +91,10 @@ def refined_arrays(model, contacts, refinement, fit, tolerance):
 
 def replaced(arrays, rows, moved):
     """A copy of the ranked hypotheses with rows ``rows`` replaced by ``moved`` (their
-    new facets, poses, costs and residuals), re-ranked."""
+    new facets, poses, costs, residuals and fits: what each pose leaves free too), re-ranked."""
     arrays = arrays.take(np.arange(len(arrays.cost)))
     for name in ("facets", "poses", "cost", "chi2", "residuals"):
         getattr(arrays, name)[rows] = getattr(moved, name)
-    arrays.fit.R[rows], arrays.fit.t[rows] = moved.fit.R, moved.fit.t
+    for f in dataclasses.fields(arrays.fit):
+        getattr(arrays.fit, f.name)[rows] = getattr(moved.fit, f.name)
     return arrays.take(np.argsort(arrays.cost, kind="stable"))

@@ -40,8 +40,7 @@ def fit_poses(obj_normals, obj_offsets, points, finger_normals, *, cost="invaria
     n = obj_normals.shape[1]
     min_eig = n * np.sin(angle_tol) ** 2
     R = wahba(obj_normals, -finger_normals)
-    # Σ n nᵀ in the object frame: its eigenvectors are the (un)determined directions
-    lam, V = np.linalg.eigh(obj_normals.transpose(0, 2, 1) @ obj_normals)
+    lam, V = _spread(obj_normals)
     free_rotation = lam[:, 1] <= min_eig
     if centroids is not None and free_rotation.any():
         axis = V[free_rotation, :, 2]
@@ -57,6 +56,24 @@ def fit_poses(obj_normals, obj_offsets, points, finger_normals, *, cost="invaria
                   cost == "paper", min_eig, t)
     rows = world.transpose(0, 2, 1)
     return PoseFit(R, t, rows, lam <= min_eig, rows[:, 2], free_rotation)
+
+
+def _spread(obj_normals):
+    """Eigenvalues (ascending) and eigenvectors of Σ n nᵀ in the object frame, the
+    (un)determined directions of normals (H, n, 3)."""
+    return np.linalg.eigh(obj_normals.transpose(0, 2, 1) @ obj_normals)
+
+
+def free_directions(R, obj_normals, angle_tol):
+    """What normals leave free, as fit_poses reports it, for poses R (H, 3, 3) whose contacts
+    hold object-frame normals (H, n, 3) (zero rows: contacts that hold none): (free_translation
+    (H, 3, 3) world rows, free_translation_mask (H, 3), free_rotation (H, 3) world axis,
+    free_rotation_mask (H,)), a direction free where Σ n nᵀ's eigenvalue is at most
+    (contacts) sin²(angle_tol)."""
+    lam, V = _spread(_c(obj_normals))
+    min_eig = (np.linalg.norm(obj_normals, axis=2) > 0).sum(axis=1)[:, None] * np.sin(angle_tol) ** 2
+    rows = (R @ V).transpose(0, 2, 1)
+    return rows, lam <= min_eig, rows[:, 2], lam[:, 1] <= min_eig[:, 0]
 
 
 def _c(a):

@@ -20,6 +20,7 @@ from contactpose.costs.frame import object_frame
 from contactpose.costs.surface import SurfaceResiduals, face_costs, landing, surface_residuals, surface_rows
 from contactpose.geometry.se3 import retract3
 from contactpose.options import outlier_penalty
+from contactpose.solvers.closed_form import free_directions
 
 #: Residual evaluations of one stage of a surface fit.
 MAX_EVALUATIONS = 200
@@ -146,7 +147,8 @@ def surface_poses(model, contacts, arrays, tolerance, k=SURFACE_REFINE):
     """The best ``k`` determined hypotheses of the ranked arrays (HypothesisArrays) posed on
     the surface (:func:`surface_fit`), those where the contact model differs from their facets
     (:func:`needs_surface`) and the surface pose lowers χ² (outlier penalty included): their
-    facets become those the contacts land on. -> (rows (K,) int, PoseFit of the surface poses,
+    facets become those the contacts land on, and what the pose leaves free is what the
+    normals of the features they land on leave free (closed_form.free_directions). -> (rows (K,) int, PoseFit of the surface poses,
     facets (K, n) int, (cone directions ν* (K, n, 3), distances |p − q| (K, n))), K >= 0"""
     rows = np.flatnonzero(~arrays.fit.underdetermined)[:k]
     fits = []
@@ -161,4 +163,8 @@ def surface_poses(model, contacts, arrays, tolerance, k=SURFACE_REFINE):
         return rows, fit, arrays.facets[rows], None
     fit.R, fit.t = np.stack([got[0] for _, got in fits]), np.stack([got[1] for _, got in fits])
     facets = np.stack([np.where(arrays.facets[r] >= 0, got[2], -1) for r, got in fits])
-    return rows, fit, facets, (np.stack([got[3] for _, got in fits]), np.stack([got[4] for _, got in fits]))
+    cones = np.stack([got[3] for _, got in fits])
+    held = np.where((facets >= 0)[..., None], np.nan_to_num(cones), 0.0)
+    (fit.free_translation, fit.free_translation_mask, fit.free_rotation,
+     fit.free_rotation_mask) = free_directions(fit.R, held, tolerance.normal_noise)
+    return rows, fit, facets, (cones, np.stack([got[4] for _, got in fits]))

@@ -155,3 +155,49 @@ def test_an_edge_grasp_the_facets_cannot_match_is_found_by_the_edges_search():
     rot, trans = group.errors(r.best.pose, pose)
     assert rot < 0.5 and trans < 0.01 * model.diameter
     assert "sharp edges" in r.hint and r.status in ("ok", "ambiguous", "underdetermined")
+
+
+def test_free_directions_are_those_the_closed_form_reports():
+    """closed_form.free_directions on the facet normals of random hypotheses gives the closed
+    form's own masks and rows; zero rows (contacts that hold no normal) change nothing."""
+    from contactpose.solvers.closed_form import fit_poses, free_directions
+
+    model = _model("box")
+    rng = np.random.default_rng(6)
+    facets = rng.integers(0, model.num_facets, size=(200, 3))
+    normals = model.planes.normals[facets]
+    points = rng.normal(size=(3, 3)) * 0.01
+    finger = -rng.normal(size=(3, 3))
+    finger /= np.linalg.norm(finger, axis=1, keepdims=True)
+    fit = fit_poses(normals, model.planes.offsets[facets], points, finger, angle_tol=np.radians(1.0),
+                    centroids=model.centroids[facets])
+    rows, mask, axis, turn = free_directions(fit.R, np.concatenate([normals, np.zeros((200, 1, 3))], axis=1),
+                                             np.radians(1.0))
+    assert np.array_equal(mask, fit.free_translation_mask) and np.array_equal(turn, fit.free_rotation_mask)
+    assert mask.any() and not mask.all()
+    assert np.allclose(np.abs(np.einsum("hij,hij->hi", rows, fit.free_translation)), 1.0)
+
+
+def test_an_edge_grasp_whose_normals_leave_a_direction_free_is_underdetermined():
+    """Five fingertips on the box's top and on edges along its x axis: every contact normal is
+    perpendicular to x, so the contacts slide along it. The edges' search poses them on the
+    surface, and the answer says the pose is a family, free along the box's x axis."""
+    model = _model("box")
+    rng = np.random.default_rng(5)
+    mesh = merged_mesh(model.vertices, model.faces)
+    pose = np.eye(4)
+    pose[:3, :3] = Rotation.from_rotvec([0.4, -0.3, 0.8]).as_matrix()
+    while True:
+        got = fingertip.approach(np.asarray(mesh.vertices), np.asarray(mesh.faces), rng, 5, 0.05 * model.diameter)
+        if got.hit.all() and sum(str(k) != fingertip.FACE for k in got.features) >= 2:
+            break
+    assert np.allclose(got.normals[:, 0], 0.0, atol=1e-9)  # the geometry this test is about
+    R, t = pose[:3, :3], pose[:3, 3]
+    noisy = got.points @ R.T + t + rng.normal(0, 0.0025 * model.diameter, (5, 3))
+    r = localize(model, Contacts(noisy, finger_normals=-(got.normals @ R.T)),
+                 position_noise=0.0025 * model.diameter, diagnose=False, finger_radius=0.05 * model.diameter)
+    assert "sharp edges" in r.hint and r.status == "underdetermined"
+    best = r.best
+    free = best.free_translation
+    assert len(free) == 1
+    assert abs(free[0] @ (best.pose[:3, :3] @ [1.0, 0.0, 0.0])) > np.cos(np.radians(1.0))
