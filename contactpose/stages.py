@@ -77,7 +77,7 @@ def find_hypotheses(model, contacts, tolerance, *, solver="closed-form", prior=N
     noise and an edge may be why (:func:`_edges_may_help`: none at all; or, with a
     ``finger_radius`` stated, the normals are what does not fit), all contacts are
     searched again at the stated noise over its facets, sharp edges and vertices
-    (:func:`edge_hypotheses`); its hypotheses join the answer when one of them fits within noise.
+    (:func:`edge_hypotheses`); those of its hypotheses that fit within noise join the answer.
     solver : as for :func:`pose_hypotheses`. -> (HypothesisArrays ranked, seconds per stage
     (SEARCH_STAGES), the SearchTree of all contacts or None, a note on the widening or the
     edges' search or "")"""
@@ -104,8 +104,9 @@ def find_hypotheses(model, contacts, tolerance, *, solver="closed-form", prior=N
                        f"(distance ±{gates.distance:.3g}, angle ±{np.degrees(gates.angle):.3g}°)")
     if _edges_may_help(model, contacts, tolerance, arrays, deadline, finger_radius):
         found = edge_hypotheses(model, contacts, tolerance, timing, prior=prior, deadline=deadline, progress=progress)
-        if np.any(found.chi2 <= fit_threshold(contacts.n)):
-            arrays = arrays.merged(found)
+        fitting = np.flatnonzero(found.chi2 <= fit_threshold(contacts.n))
+        if len(fitting):
+            arrays = arrays.merged(found.take(fitting))
             arrays = arrays.take(np.sort(np.unique(arrays.facets, axis=0, return_index=True)[1]))
             widened = EDGES_NOTE
     return arrays, timing, grown, widened
