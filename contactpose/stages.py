@@ -23,7 +23,7 @@ from itertools import combinations
 import numpy as np
 
 from contactpose.costs.association import fitting_members, nearest_fit_facets
-from contactpose.options import DEFAULT_REFINE, FIT_CONFIDENCE, OUTLIER_PENALTY, chi2_quantile, fit_threshold
+from contactpose.options import DEFAULT_REFINE, OUTLIER_PENALTY, fit_threshold
 from contactpose.progress import Deadline
 from contactpose.scoring import evidence, refine
 from contactpose.scoring import rank as ranking
@@ -74,8 +74,8 @@ def find_hypotheses(model, contacts, tolerance, *, solver="closed-form", prior=N
     6σ), until one finds hypotheses, the time limit passes or the contacts could not fit even
     the widest gate: Gaussian noise has tails beyond any fixed gate, and one reading at 4σ must
     not empty the answer. Then, on a model with a facet table, when no hypothesis fits within
-    noise and an edge may be why (:func:`_edges_may_help`: none at all; or, with a
-    ``finger_radius`` stated, the normals are what does not fit), all contacts are
+    noise and an edge may be why (:func:`_edges_may_help`: none at all, or any poor fit with a
+    ``finger_radius`` stated), all contacts are
     searched again at the stated noise over its facets, sharp edges and vertices
     (:func:`edge_hypotheses`); those of its hypotheses that fit within noise join the answer.
     solver : as for :func:`pose_hypotheses`. -> (HypothesisArrays ranked, seconds per stage
@@ -116,26 +116,15 @@ def _edges_may_help(model, contacts, tolerance, arrays, deadline, finger_radius=
     """Whether the search over facets, sharp edges and vertices should run (find_hypotheses):
     a model with a facet table, time left, no hypothesis that fits within noise, contacts
     spread wider than EDGES_MIN_SPREAD pair distance gates (closer ones fit any vertex whose
-    cone holds their normals), and either no hypothesis at all, or rounded fingertips stated
-    (``finger_radius`` > 0: a point contact lands on an edge almost never, a rounded one often)
-    and a best hypothesis (least χ²) whose position rows fit within noise (their χ² within the
-    FIT_CONFIDENCE quantile of n degrees of freedom) and whose normal rows do not: the normals
-    are what does not fit, as on an edge, not a finger off the object. Without a stated
-    radius a poor fit keeps its diagnosis: cones wide enough for an edge also absorb a noise
-    stated too small."""
+    cone holds their normals), and either no hypothesis at all or rounded fingertips stated
+    (``finger_radius`` > 0: a point contact lands on an edge almost never, a rounded one
+    often). Without a stated radius a poor fit keeps its diagnosis: cones wide enough for an
+    edge also absorb a normal noise stated too small."""
     if model.table is None or deadline.passed or contacts.spread <= EDGES_MIN_SPREAD * tolerance.distance:
         return False
-    n = contacts.n
-    if np.any(arrays.chi2 <= fit_threshold(n)):
+    if np.any(arrays.chi2 <= fit_threshold(contacts.n)):
         return False
-    if not len(arrays.cost):
-        return True
-    if not finger_radius:
-        return False
-    residuals = arrays.residuals[np.argmin(arrays.chi2)]
-    position = np.nansum(residuals[:, 3:] ** 2) / tolerance.position_noise**2
-    normal = np.nansum(residuals[:, :3] ** 2) / tolerance.normal_noise**2
-    return bool(position <= chi2_quantile(FIT_CONFIDENCE, n) < normal)
+    return not len(arrays.cost) or bool(finger_radius)
 
 
 def edge_hypotheses(model, contacts, tolerance, timing, *, prior=None, deadline=None, progress=None):
