@@ -103,17 +103,23 @@ def main(argv=None):
     for name in args.objects:
         rows += run_object(name, args.grasps, RADII)
         print(f"{name}: {len(rows)} grasps so far, {time.perf_counter() - start:.0f} s", flush=True)
-    with open(args.out / "grasps.csv", "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=FIELDS)
+    write(args.out, FIELDS, rows, f"# The default method on coarse meshes with sharp edges\n\n{len(rows)} grasps",
+          f"coarse_edges.py --grasps {args.grasps}", time.perf_counter() - start, summary(rows))
+    return 0
+
+
+def write(out, fields, rows, title, command, seconds, lines):
+    """grasps.csv (``fields`` of ``rows``) and summary.md (``title``, the date, machine, seconds and
+    ``experiments/<command>``, what right means, then the table ``lines``) in ``out``; prints the table."""
+    with open(out / "grasps.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=fields)
         writer.writeheader()
         writer.writerows(rows)
-    head = (f"# The default method on coarse meshes with sharp edges\n\n{len(rows)} grasps, "
-            f"{datetime.now(timezone.utc):%Y-%m-%d}, {platform.machine()}, {time.perf_counter() - start:.0f} s "
-            f"(`experiments/coarse_edges.py --grasps {args.grasps}`). Right: rotation < {SUCCESS_ROT_DEG:g}° and "
-            f"translation < {100 * SUCCESS_TRANS_FRAC:g} % of the diameter, modulo the object's symmetry group.\n")
-    (args.out / "summary.md").write_text(head + "\n" + "\n".join(summary(rows)) + "\n")
-    print("\n".join(summary(rows)))
-    return 0
+    head = (f"{title}, {datetime.now(timezone.utc):%Y-%m-%d}, {platform.machine()}, {seconds:.0f} s "
+            f"(`experiments/{command}`). Right: rotation < {SUCCESS_ROT_DEG:g}° and translation < "
+            f"{100 * SUCCESS_TRANS_FRAC:g} % of the diameter, modulo the object's symmetry group.\n")
+    (out / "summary.md").write_text(head + "\n" + "\n".join(lines) + "\n")
+    print("\n".join(lines))
 
 
 if __name__ == "__main__":

@@ -20,16 +20,14 @@ pybullet (``pip install pybullet``; not a dependency of the package)::
 from __future__ import annotations
 
 import argparse
-import csv
-import platform
 import sys
 import time
 import warnings
-from datetime import datetime, timezone
+from importlib.metadata import version
 from pathlib import Path
 
 import numpy as np
-from coarse_edges import OBJECTS, RADII
+from coarse_edges import OBJECTS, RADII, write
 from regions_check import CONFIG
 
 from contactpose import Contacts, ObjectModel, localize
@@ -164,18 +162,10 @@ def main(argv=None):
     for name in args.objects:
         rows += run_object(pybullet, name, args.grasps, RADII)
         print(f"{name}: {len(rows)} rows, {time.perf_counter() - start:.0f} s", flush=True)
-    with open(args.out / "grasps.csv", "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=FIELDS)
-        writer.writeheader()
-        writer.writerows(rows)
-    head = (f"# The default method on a physics engine's contacts (PyBullet {pybullet.getAPIVersion()})\n\n"
-            f"{len(rows) // 2} grasps, each with our simulator's contacts and the engine's on the same aims, the "
-            f"same noise; {datetime.now(timezone.utc):%Y-%m-%d}, {platform.machine()}, "
-            f"{time.perf_counter() - start:.0f} s (`experiments/engine_contacts.py --grasps {args.grasps}`). Right: "
-            f"rotation < {SUCCESS_ROT_DEG:g}° and translation < {100 * SUCCESS_TRANS_FRAC:g} % of the diameter, "
-            f"modulo the object's symmetry group.\n")
-    (args.out / "summary.md").write_text(head + "\n" + "\n".join(summary(rows)) + "\n")
-    print("\n".join(summary(rows)))
+    write(args.out, FIELDS, rows,
+          f"# The default method on a physics engine's contacts (PyBullet {version('pybullet')})\n\n"
+          f"{len(rows) // 2} grasps, each with our simulator's contacts and the engine's on the same aims, the same "
+          f"noise", f"engine_contacts.py --grasps {args.grasps}", time.perf_counter() - start, summary(rows))
     return 0
 
 
