@@ -84,19 +84,28 @@ def summary(rows):
             rot = np.array([r["rot_err_deg"] for r in sel])
             lines.append(
                 f"| {name} | {sel[0]['facets']} | {100 * frac:g} % | {split} | {len(sel)} | "
-                f"{np.mean([r['hypotheses'] == 0 for r in sel]):.0%} | {np.mean([r['any_right'] for r in sel]):.0%} | "
-                f"{np.mean([r['best_right'] for r in sel]):.0%} | "
-                f"{np.median(rot[np.isfinite(rot)]) if np.isfinite(rot).any() else np.nan:.2f}° | "
+                f"{outcomes(sel)} | {np.median(rot[np.isfinite(rot)]) if np.isfinite(rot).any() else np.nan:.2f}° | "
                 f"{np.median(t):.0f} / {np.percentile(t, 95):.0f} ms |")
     return lines
 
 
-def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+def outcomes(sel):
+    """'no hypothesis | any listed right | best right' shares of the rows ``sel``, for a table row."""
+    return (f"{np.mean([r['hypotheses'] == 0 for r in sel]):.0%} | {np.mean([r['any_right'] for r in sel]):.0%} | "
+            f"{np.mean([r['best_right'] for r in sel]):.0%}")
+
+
+def arguments(argv, doc, grasps, name):
+    """The command line of a coarse-objects experiment: objects, --grasps, --out (results/<name>)."""
+    parser = argparse.ArgumentParser(description=doc.split("\n")[0])
     parser.add_argument("objects", nargs="*", default=list(OBJECTS))
-    parser.add_argument("--grasps", type=int, default=50)
-    parser.add_argument("--out", type=Path, default=ROOT / "results" / "coarse_edges")
-    args = parser.parse_args(argv)
+    parser.add_argument("--grasps", type=int, default=grasps)
+    parser.add_argument("--out", type=Path, default=ROOT / "results" / name)
+    return parser.parse_args(argv)
+
+
+def main(argv=None):
+    args = arguments(argv, __doc__, 50, "coarse_edges")
     warnings.simplefilter("ignore")
     args.out.mkdir(parents=True, exist_ok=True)
     start, rows = time.perf_counter(), []

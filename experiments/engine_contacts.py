@@ -19,7 +19,6 @@ pybullet (``pip install pybullet``; not a dependency of the package)::
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 import warnings
@@ -27,7 +26,7 @@ from importlib.metadata import version
 from pathlib import Path
 
 import numpy as np
-from coarse_edges import OBJECTS, RADII, write
+from coarse_edges import RADII, arguments, outcomes, write
 from regions_check import CONFIG
 
 from contactpose import Contacts, ObjectModel, localize
@@ -140,17 +139,12 @@ def summary(rows):
                 f"| {name} | {100 * frac:g} % | {source} | {len(sel)} | "
                 f"{100 * np.median([r['engine_gap'] for r in sel]):.2f} %, "
                 f"{np.median([r['engine_angle_deg'] for r in sel]):.1f}° | "
-                f"{np.mean([r['hypotheses'] == 0 for r in sel]):.0%} | {np.mean([r['any_right'] for r in sel]):.0%} | "
-                f"{np.mean([r['best_right'] for r in sel]):.0%} | {np.median(t):.0f} / {np.percentile(t, 95):.0f} ms |")
+                f"{outcomes(sel)} | {np.median(t):.0f} / {np.percentile(t, 95):.0f} ms |")
     return lines
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("objects", nargs="*", default=list(OBJECTS))
-    parser.add_argument("--grasps", type=int, default=30)
-    parser.add_argument("--out", type=Path, default=ROOT / "results" / "engine_contacts")
-    args = parser.parse_args(argv)
+    args = arguments(argv, __doc__, 30, "engine_contacts")
     try:
         import pybullet
     except ImportError:
