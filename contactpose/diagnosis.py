@@ -122,7 +122,7 @@ class _Trials:
             warnings.simplefilter("ignore")
             arrays = stages.find_hypotheses(self.model, contacts, tolerance, prior=self.prior,
                                             max_outliers=max_outliers, deadline=deadline, progress=False)[0]
-            arrays = stages.distinct(self.model, arrays, tolerance, deadline)
+            arrays = stages.distinct(self.model, arrays, tolerance, deadline, merge_twins=self.prior is None)
             _, status, _ = stages.classify(self.model, contacts, arrays, tolerance, deadline=deadline)
         if deadline.hit:
             self.budget.hit = True

@@ -40,7 +40,7 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
              method="fast", solver=None, top=None, model_error=0.0, max_outliers=0, robust="huber",
              refine=DEFAULT_REFINE, samples=0, seed=None, sample_top=1, finger_radius=None,
              time_limit=DEFAULT_TIME_LIMIT, progress=None, distinct=True, surface="auto", keep="fitting", tree=None,
-             diagnose=True):
+             diagnose=True, twins=False):
     """Find every admissible finger-to-facet assignment and the object pose behind each.
 
     model : ObjectModel; contacts : Contacts (world frame); position_noise : per-axis σ of
@@ -67,7 +67,13 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
     distinct : list one hypothesis per distinct pose, the best of its near-copies (assignments
     to neighbouring facets that move the surface by under 5 % of the diameter, RMS:
     scoring.classes.distinct_poses; "fast" only); ``result.num_assignments`` counts them all.
-    False lists every facet assignment. surface : pose the best hypotheses on the surface
+    False lists every facet assignment. twins : on a symmetric object (model.symmetry), list
+    each symmetric twin of a placement (the poses T G over its symmetries G, which place the
+    surface alike and which no contact tells apart) as a distinct pose of its own; False
+    (default) lists the best-ranked twin only (research/symmetry.md), unless a ``prior`` is
+    given, which tells them apart. Twins have the same χ² and differ in facets: evaluate
+    facet tuples against a truth with twins=True, or poses modulo Symmetry.errors.
+    surface : pose the best hypotheses on the surface
     contact model, where a contact may lie on an edge or vertex with its normal in that
     feature's normal cone (solvers.surface, research/surface.md; "fast" with the closed form
     and distinct poses only: ``distinct=False`` lists facet assignments, each posed on its
@@ -104,6 +110,7 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
     _warn_units(model, contacts, tolerance)
     start = time.perf_counter()
     fast, grown, notes = method == "fast", None, ()
+    merge_twins = not twins and prior is None
     if fast:
         arrays, timing, grown, widened = stages.find_hypotheses(
             model, contacts, tolerance, solver="closed-form" if solver == "factor-graph" else solver, prior=prior,
@@ -117,11 +124,13 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
             arrays = drop_blocked(model, contacts, arrays, finger_radius)
     assignments = len(arrays.cost)
     if fast and distinct:
-        with _clock(timing, "rank"):
-            arrays = stages.distinct(model, arrays, tolerance, deadline)
-        if surface and solver == "closed-form":
+        refit = surface and solver == "closed-form"
+        with _clock(timing, "rank"):  # twins merge after the surface fit: it fits the same best as without
+            arrays = stages.distinct(model, arrays, tolerance, deadline, merge_twins=merge_twins and not refit)
+        if refit:
             with _clock(timing, "pose"):
-                arrays = stages.surface_hypotheses(model, contacts, arrays, tolerance, deadline)
+                arrays = stages.surface_hypotheses(model, contacts, arrays, tolerance, deadline,
+                                                   merge_twins=merge_twins)
     if solver == "factor-graph":
         with _clock(timing, "refine"):
             arrays, rescue = stages.refine_hypotheses(model, contacts, arrays, tolerance, prior=prior, robust=robust,

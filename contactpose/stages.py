@@ -243,17 +243,17 @@ def polish_hypotheses(model, contacts, arrays, tolerance):
 
 # ------------------------------------------------------------ after search ---
 
-def distinct(model, arrays, tolerance, deadline):
-    """One hypothesis per distinct pose (scoring.classes.distinct_poses), within what is left
-    of the deadline (a progress.Deadline), or GROUPING_GRACE seconds if more; a cut there
-    counts as the deadline's."""
+def distinct(model, arrays, tolerance, deadline, merge_twins=False):
+    """One hypothesis per distinct pose (scoring.classes.distinct_poses; merge_twins : the
+    symmetric twins of a placement count as one pose), within what is left of the deadline (a
+    progress.Deadline), or GROUPING_GRACE seconds if more; a cut there counts as the deadline's."""
     grouping = Deadline(None if deadline.seconds is None else max(deadline.remaining(), GROUPING_GRACE))
-    arrays = distinct_poses(model, arrays, tolerance.position_noise, grouping)[0]
+    arrays = distinct_poses(model, arrays, tolerance.position_noise, grouping, merge_twins)[0]
     deadline.hit |= grouping.hit
     return arrays
 
 
-def surface_hypotheses(model, contacts, arrays, tolerance, deadline, k=SURFACE_REFINE):
+def surface_hypotheses(model, contacts, arrays, tolerance, deadline, k=SURFACE_REFINE, merge_twins=False):
     """The best hypotheses posed on the surface contact model where it fits better than their
     facets (solvers.surface.surface_poses): their facets those the contacts land on, their
     residuals the contact model's; re-ranked, then one per distinct pose (:func:`distinct`)."""
@@ -264,7 +264,7 @@ def surface_hypotheses(model, contacts, arrays, tolerance, deadline, k=SURFACE_R
         _, first = np.unique(arrays.facets, axis=0, return_index=True)  # two fits may land alike: keep the better
         if len(first) != len(arrays.cost):
             arrays = arrays.take(np.sort(first))
-    return distinct(model, arrays, tolerance, deadline)
+    return distinct(model, arrays, tolerance, deadline, merge_twins)
 
 
 def refine_hypotheses(model, contacts, arrays, tolerance, *, prior=None, robust="huber", k=DEFAULT_REFINE):

@@ -218,7 +218,7 @@ def run_grasp(model, name, i, grasp, tolerance, args):
         row.update(stage_stats(model, grasp, stage, tuples, grasp.facets, same, view))
         row[f"{stage}_ms"] = 1000 * (time.perf_counter() - start)
     # stage 3: the default search
-    result = localize(model, grasp.contacts, **noise)
+    result = localize(model, grasp.contacts, twins=True, **noise)  # the true tuple: every symmetric twin listed
     a = result.hypotheses.arrays
     truth = labels[grasp.facets]
     key = lambda t: labels[t] if len(t) else t
@@ -239,7 +239,7 @@ def run_grasp(model, name, i, grasp, tolerance, args):
     row["in_facet_classes"] = len(result.classes)
     # stage 5: + free space
     start = time.perf_counter()
-    kept = localize(model, grasp.contacts, finger_radius=args.finger_radius, **noise).hypotheses.arrays
+    kept = localize(model, grasp.contacts, finger_radius=args.finger_radius, twins=True, **noise).hypotheses.arrays
     free = fits[np.isin(_keys(a.facets[fits]), _keys(kept.facets))]
     row.update(stage_stats(model, grasp, "free_space", a.facets[free], truth, key, a.take(free)))
     row["free_space_ms"] = 1000 * (time.perf_counter() - start)
@@ -279,7 +279,7 @@ def touch_episode(model, name, i, grasp, result, strategy, rng, touches):
                 count = int(np.sum(probe.contact_share < 1.0)) if count == len(current.classes) else count
             else:
                 contacts = with_contact(contacts, *measured)
-                current = localize(model, contacts, **noise)
+                current = localize(model, contacts, twins=True, **noise)
                 count = len(current.classes)
         row[f"classes_{k}"] = count
         row[f"resolved_{k}"] = count == 1

@@ -35,7 +35,8 @@ def task(settings, rng, *, cfg):
     name, n = settings["object"], settings["fingers"]
     model = sweep.cached(("model", name), lambda: ObjectModel.from_mesh(objects.load(name)))
     g = simulate.grasp(model, rng, n=n, position_noise=cfg["position_noise"], normal_noise_deg=cfg["normal_noise_deg"])
-    r = localize(model, g.contacts, position_noise=cfg["position_noise"], normal_noise_deg=cfg["normal_noise_deg"])
+    r = localize(model, g.contacts, position_noise=cfg["position_noise"], normal_noise_deg=cfg["normal_noise_deg"],
+                 twins=True)  # the true facet tuple: every symmetric twin listed
     facets = r.hypotheses.arrays.facets
     best = r.best
     row = {"status": r.status, "hypotheses": r.num_hypotheses,

@@ -90,7 +90,7 @@ def task(settings, rng, *, cfg):
             rows.append({**row, "ran": False, "hypotheses": counts[method]})
             continue
         r = localize(model, grasp.contacts, position_noise=sx, normal_noise_deg=sn, prior=prior,
-                     method=method, solver=solver, diagnose=False)
+                     method=method, solver=solver, diagnose=False, twins=True)  # the true tuple: every twin listed
         if solver == "closed-form":
             counts[method] = r.num_hypotheses
         rows.append({**row, "ran": True, **outcome(model, grasp, r),

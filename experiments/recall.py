@@ -88,7 +88,7 @@ def run_grasp(model, name, i, grasp, tolerance, args):
     """One row of recall.csv."""
     noise = dict(position_noise=POSITION_NOISE, normal_noise_deg=NORMAL_NOISE_DEG)
     row = {"mesh": name, "grasp": i, "true_facets": " ".join(map(str, grasp.facets))}
-    fast = localize(model, grasp.contacts, **noise)
+    fast = localize(model, grasp.contacts, twins=True, **noise)  # the true tuple: every symmetric twin listed
     facets = fast.hypotheses.arrays.facets
     row.update(fast_hypotheses=fast.num_hypotheses, fast_recall=has_row(facets, grasp.facets),
                fast_status=fast.status, fast_ms=1000 * fast.timing["total"],

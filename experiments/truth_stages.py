@@ -144,12 +144,12 @@ def stage_of(bench, s, contacts, pose, facets, points, normals, kinds, noise):
     """The stage that loses the true placement, and the figures behind it."""
     model, labels = s.model, s.labels
     keys = [np.unique(labels[f]) for f in (bench.incident_facets(s, f, p, k) for f, p, k in zip(facets, points, kinds))]
-    listed = localize(model, contacts, **noise, keep="all")
+    listed = localize(model, contacts, **noise, keep="all", twins=True)  # the true tuple: every symmetric twin
     out = {"status": listed.status, "best_rot_deg": metrics.rotation_error_deg(listed.best.pose, pose),
            "best_chi2": float(listed.best.chi2), "bound_rot_deg": bound_rotation_deg(s, points, normals, noise)}
     rank = placement_rank(s, listed.hypotheses.arrays.poses, pose, FOUND_FRAC * model.diameter)
     out["placement_rank"] = rank
-    every = localize(model, contacts, **noise, keep="all", distinct=False)
+    every = localize(model, contacts, **noise, keep="all", distinct=False, twins=True)
     rows = np.flatnonzero(matching(labels, every.hypotheses.arrays.facets, keys))
     if len(rows):
         true_best = every.hypotheses[int(rows[0])]

@@ -422,7 +422,7 @@ def test_status_ambiguous_for_symmetric_box_grasp(box_model):
     placements of the surface that are not symmetric twins."""
     pts = np.array([[0.05, 0.007, 0.005], [0.02, 0.03, -0.005], [0.01, -0.01, 0.02], [0.015, 0.005, -0.02]])
     normals = np.array([[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0], [0, 0, -1.0]])
-    r = localize(box_model, Contacts(pts, object_normals=normals), **NOISE)
+    r = localize(box_model, Contacts(pts, object_normals=normals), twins=True, **NOISE)
     assert r.status == "ambiguous"
     mesh = trimesh.Trimesh(box_model.vertices, box_model.faces, process=False)
     fitting = []
@@ -630,7 +630,7 @@ def test_recall_patch_level_carton(carton_model):
     labels = model.patches.labels
     assert model.patch_table is not None
     missed = [i for i, g in enumerate(recall_grasps(model, 300))
-              if not has_row(labels[localize(model, g.contacts, **NOISE).hypotheses.arrays.facets],
+              if not has_row(labels[localize(model, g.contacts, twins=True, **NOISE).hypotheses.arrays.facets],
                              labels[g.facets])]
     assert missed == []
 

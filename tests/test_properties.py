@@ -74,8 +74,8 @@ def model(name, scale=1.0):
 def localize(m, contacts, scale=1.0, **kwargs):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        return cp.localize(m, contacts, position_noise=POSITION_NOISE * scale,
-                           normal_noise_deg=NORMAL_NOISE_DEG, **kwargs)
+        return cp.localize(m, contacts, position_noise=POSITION_NOISE * scale,  # facet sets: every twin listed
+                           normal_noise_deg=NORMAL_NOISE_DEG, twins=True, **kwargs)
 
 
 def labels(m, facets):
@@ -200,12 +200,14 @@ def test_scaling_scales_translation(case, scale):
 @PROPERTY
 @given(grasp_cases, st.sampled_from([0.0002, 0.0005, 0.001]), st.sampled_from([0.5, 1.0, 2.0]))
 def test_recall_with_bounded_noise(case, position_noise, normal_noise_deg):
-    """Noise within the tolerance: the search is complete, the true tuple is a hypothesis."""
+    """Noise within the tolerance: the search is complete, the true tuple is a hypothesis (every
+    assignment listed: with two contacts the true tuple can be a near-copy of another)."""
     CASES["test_recall_with_bounded_noise"] += 1
     m, g = grasp(*case, position_noise=position_noise, normal_noise_deg=normal_noise_deg)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        r = cp.localize(m, g.contacts, position_noise=position_noise, normal_noise_deg=normal_noise_deg)
+        r = cp.localize(m, g.contacts, position_noise=position_noise, normal_noise_deg=normal_noise_deg,
+                        distinct=False)
     found = labels(m, r.hypotheses.arrays.facets)
     assert (found == labels(m, g.facets)).all(axis=1).any(), f"true facets {g.facets.tolist()} not among {len(found)}"
 

@@ -68,6 +68,9 @@ def register(sub):
     p.add_argument("--keep", choices=KEEP, default="fitting",
                    help="hypotheses to list: fitting (the best and those that fit within noise; the best "
                         f"{POOR_FIT_LISTED} when none fits) or all distinct poses")
+    p.add_argument("--twins", action="store_true",
+                   help="on a symmetric object, list every symmetric twin of a placement (default: the best one, "
+                        "unless a prior is given)")
     p.add_argument("--fix-normals", action="store_true", help="with a mesh: re-wind its faces outward first")
     p.add_argument("--time-limit", type=float, default=DEFAULT_TIME_LIMIT, metavar="SEC",
                    help="seconds the search may take; past them the hypotheses found so far come back with "
@@ -93,6 +96,8 @@ def warn_options_in_vain(args):
         warn_in_vain("--keep", "without -o (the printed result shows the best hypothesis only)")
     if args.keep != "fitting" and args.method == "paper":
         warn_in_vain("--keep", "with --method paper (it lists every hypothesis)")
+    if args.twins and not args.output:
+        warn_in_vain("--twins", "without -o (the printed result shows the best hypothesis only)")
     if args.top is not None and not args.output:
         warn_in_vain("--top", "without -o (the printed result shows the best hypothesis only)")
     if args.fix_normals and is_model_file(args.model):
@@ -111,6 +116,7 @@ def run(args):
                       max_outliers=args.max_outliers, samples=args.samples, seed=args.seed,
                       finger_radius=args.finger_radius, time_limit=args.time_limit or None,
                       surface="auto" if args.surface is None else args.surface, keep=args.keep, model_error=args.model_error,
+                      twins=args.twins,
                       refine=DEFAULT_REFINE if args.refine is None else args.refine)
     warn_options_in_vain(args)  # after the checks: bad input gets its one error line only
     if args.output:

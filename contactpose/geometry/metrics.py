@@ -29,37 +29,45 @@ def translation_error(T_est, T_true):
 
 def symmetric_errors(T_est, T_true, rotations, axes=(), centre=None):
     """Rotation error (degrees) and translation error (length units) of T_est against the
-    nearest of the poses that place the surface as T_true does: T_true G over the object's
-    symmetries G, the one of least rotation error.
+    nearest of the poses that place the surface as T_true does (:func:`nearest_twins`).
 
-    T_est, T_true : (..., 4, 4), broadcast; rotations : (K, 4, 4) the symmetries G = [Q, c - Q c]
-    in the object frame (the identity among them); axes : (C, 3) unit axes through ``centre``
-    (3,; default the origin) about which every turn is a symmetry: C = 0 none; 1 an axis, each G then followed by
-    the turn about it that fits best (in closed form: the angle φ maximising tr(A Rot(a, φ)),
-    A = R_estᵀ R_true Q, is atan2(tr(A [a]×), tr A - aᵀ A a)); 2 or more, every rotation (the
-    error is then the centroid's displacement alone). -> (rotation (...), translation (...))
+    T_est, T_true : (..., 4, 4), broadcast; rotations, axes, centre : the symmetry group, as
+    for :func:`nearest_twins`. -> (rotation (...), translation (...))
     """
-    T_est, T_true = np.broadcast_arrays(np.asarray(T_est, dtype=np.float64), np.asarray(T_true, dtype=np.float64))
+    twin = nearest_twins(T_est, T_true, rotations, axes, centre)
+    return rotation_error_deg(T_est, twin), translation_error(T_est, twin)
+
+
+def nearest_twins(T_ref, T, rotations, axes=(), centre=None):
+    """Of the poses that place the surface as T does, T G over the object's symmetries G, the
+    one of least rotation error to T_ref.
+
+    T_ref, T : (..., 4, 4), broadcast; rotations : (K, 4, 4) the symmetries G = [Q, c - Q c]
+    in the object frame (the identity among them); axes : (C, 3) unit axes through ``centre``
+    (3,; default the origin) about which every turn is a symmetry: C = 0 none; 1 an axis, each
+    G then followed by the turn about it that fits best (in closed form: the angle φ maximising
+    tr(A Rot(a, φ)), A = R_refᵀ R Q, is atan2(tr(A [a]×), tr A - aᵀ A a)); 2 or more, every
+    rotation (the twin then has T_ref's rotation). -> (..., 4, 4)
+    """
+    T_ref, T = np.broadcast_arrays(np.asarray(T_ref, dtype=np.float64), np.asarray(T, dtype=np.float64))
     axes = np.asarray(axes, dtype=np.float64).reshape(-1, 3)
     rotations = np.asarray(rotations, dtype=np.float64)
     centre = np.zeros(3) if centre is None else np.asarray(centre, dtype=np.float64)
     if len(axes) == 0 and len(rotations) == 1 and np.array_equal(rotations[0], np.eye(4)):  # no symmetry
-        return rotation_error_deg(T_est, T_true), translation_error(T_est, T_true)
+        return T.copy()
     if len(axes) >= 2:
-        Q = np.einsum("...ji,...jk->...ik", T_true[..., :3, :3], T_est[..., :3, :3])
-        return np.zeros(T_est.shape[:-2]), translation_error(T_est, T_true @ _about(Q, centre))
-    candidates = T_true[..., None, :, :] @ rotations  # (..., K, 4, 4)
+        Q = np.einsum("...ji,...jk->...ik", T[..., :3, :3], T_ref[..., :3, :3])
+        return T @ _about(Q, centre)
+    candidates = T[..., None, :, :] @ rotations  # (..., K, 4, 4)
     if len(axes) == 1:
         a = axes[0]
-        A = np.einsum("...ji,...kjl->...kil", T_est[..., :3, :3], candidates[..., :3, :3])
+        A = np.einsum("...ji,...kjl->...kil", T_ref[..., :3, :3], candidates[..., :3, :3])
         phi = np.arctan2(np.einsum("...ij,ji->...", A, hat(a)),
                          np.trace(A, axis1=-2, axis2=-1) - np.einsum("i,...ij,j->...", a, A, a))
         turn = Rotation.from_rotvec(phi.reshape(-1, 1) * a).as_matrix().reshape(phi.shape + (3, 3))
         candidates = candidates @ _about(turn, centre)
-    rot = rotation_error_deg(T_est[..., None, :, :], candidates)
-    best = np.argmin(rot, axis=-1)[..., None]
-    trans = translation_error(T_est[..., None, :, :], candidates)
-    return np.take_along_axis(rot, best, axis=-1)[..., 0], np.take_along_axis(trans, best, axis=-1)[..., 0]
+    best = np.argmin(rotation_error_deg(T_ref[..., None, :, :], candidates), axis=-1)
+    return np.take_along_axis(candidates, best[..., None, None, None], axis=-3)[..., 0, :, :]
 
 
 def _about(Q, centre):

@@ -45,11 +45,14 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from contactpose.geometry.kernels import point_triangle_distance
-from contactpose.geometry.metrics import symmetric_errors
+from contactpose.geometry.metrics import nearest_twins, symmetric_errors
 from contactpose.io.modelfile import STORED_SYMMETRY, check_arrays
 
 log = logging.getLogger(__name__)
 
+#: Rotation vector (radians) of the pose a twin is chosen nearest to (Symmetry.canonical): a
+#: generic one, since the identity is as far from several twins of an axis-aligned pose.
+CANONICAL_REFERENCE = (0.5, -0.3, 0.2)
 #: Near regime: a turn is a symmetry when ADD-S (mean distance of the turned surface samples
 #: to the surface) stays below this fraction of the diameter.
 SYMMETRY_ADDS_FRAC = 0.0075
@@ -126,6 +129,14 @@ class Symmetry:
         """Rotation (degrees) and translation error of T_est against T_true modulo the group:
         :func:`contactpose.geometry.metrics.symmetric_errors`. T_* : (..., 4, 4) -> ((...), (...))"""
         return symmetric_errors(T_est, T_true, self.rotations, self.axes, self.centre)
+
+    def canonical(self, poses):
+        """Each pose's twin (the poses T G that place the surface as T does) of least rotation
+        from CANONICAL_REFERENCE: the same pose for every twin of a placement, so that twins
+        compare as one pose (scoring.classes.distinct_poses). poses : (..., 4, 4) -> (..., 4, 4)"""
+        reference = np.eye(4)
+        reference[:3, :3] = Rotation.from_rotvec(CANONICAL_REFERENCE).as_matrix()
+        return nearest_twins(reference, poses, self.rotations, self.axes, self.centre)
 
     def describe(self):
         """The group in words, e.g. "24-fold about axis (0.00, 0.00, 1.00)"."""

@@ -11,6 +11,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from contactpose.geometry.metrics import SAME_CLASS_ADDS_FRAC, adds_many, pose_embedding, rms_displacement
+from contactpose.model.symmetry import symmetry
 from contactpose.options import fit_threshold
 from contactpose.types import PoseClass
 
@@ -62,22 +63,27 @@ def classify_poses(model, all_poses, chi2, n, fits=None, probability=None):
             for m, r, p in zip(members, reps, prob)]
 
 
-def distinct_poses(model, arrays, position_noise, deadline=None):
+def distinct_poses(model, arrays, position_noise, deadline=None, merge_twins=False):
     """One hypothesis per distinct pose: the ranked hypotheses (HypothesisArrays) without the
     near-copies of a better one, and how many assignments each one stands for.
 
     A hypothesis is a near-copy when the surface points (model.class_points) move by less
     than max(DISTINCT_RMS_FRAC · diameter, DISTINCT_RMS_SIGMA · position_noise), RMS, from a
-    better-ranked kept hypothesis that is determined or underdetermined as it is. Once
-    ``deadline`` (a progress.Deadline) has passed, the rows not yet grouped are kept as they
-    are. Returns (arrays of the kept hypotheses in rank order, (K,) int copies per kept
+    better-ranked kept hypothesis that is determined or underdetermined as it is. merge_twins : on
+    a symmetric object (model.symmetry), compare each pose's canonical twin (Symmetry.canonical)
+    instead, so that the twins of a placement, which no contact tells apart, are one pose too.
+    Once ``deadline`` (a progress.Deadline) has passed, the rows not yet grouped are kept as
+    they are. Returns (arrays of the kept hypotheses in rank order, (K,) int copies per kept
     hypothesis, itself included).
     """
     h = len(arrays.cost)
     if h < 2:
         return arrays, np.ones(h, dtype=np.int64)
-    owner = pose_leaders(model, arrays.poses, arrays.fit.underdetermined, distinct_radius(model, position_noise),
-                         deadline)
+    poses = arrays.poses
+    group = symmetry(model) if merge_twins else None
+    if group is not None and not group.trivial:
+        poses = group.canonical(poses)
+    owner = pose_leaders(model, poses, arrays.fit.underdetermined, distinct_radius(model, position_noise), deadline)
     kept = np.flatnonzero(owner == np.arange(h))
     return arrays.take(kept), np.bincount(np.searchsorted(kept, owner), minlength=len(kept))
 

@@ -210,6 +210,28 @@ def test_model_error_widens_the_distance_tolerance(tmp_path):
     assert code == 2 and "model_error must be >= 0, got -0.001" in err and err.count("\n") == 1
 
 
+def test_twins_lists_every_symmetric_twin_of_a_placement(tmp_path):
+    """--twins: on the box (its 4 rotations) every twin of a placement is written, as the
+    library's localize(..., twins=True) lists them; by default one per placement, none of the
+    written poses a twin of another (ADD-S on the surface points)."""
+    from contactpose.geometry.metrics import adds_many
+    model, g = grasp("box", 3)
+    path = write_contacts(tmp_path / "c.json", g.contacts)
+    written = {}
+    for flag in ([], ["--twins"]):
+        out = tmp_path / f"out{len(flag)}.json"
+        assert run(["localize", "box", "--contacts", path, *NOISE_ARGS, *flag, "-o", out])[0] == 0
+        written[bool(flag)] = np.array([h["pose"] for h in json.loads(out.read_text())["hypotheses"]])
+    want = localize(model, g.contacts, twins=True, **NOISE)
+    assert np.allclose(written[True], want.hypotheses.arrays.poses, atol=1e-9)
+    one = written[False]
+    assert len(one) < len(written[True])
+    for k in range(len(one)):
+        others = np.delete(one, k, axis=0)
+        if len(others):
+            assert adds_many(others, one[k], model.surface_points, model.surface_tree).min() > 0.01 * model.diameter
+
+
 def test_refine_sets_how_many_hypotheses_the_factor_graph_refines(tmp_path, monkeypatch):
     """--refine K: the factor graph refines the best K, and with --keep all lists exactly them,
     their probabilities summing to 1; without it, the library's default; in vain without the graph."""

@@ -88,3 +88,88 @@ def test_distinct_poses_keep_one_per_pose(banana_model, seed):
     assert r.num_assignments == len(a.cost) and r.num_hypotheses == len(kept.cost)
     assert np.allclose(r.hypotheses.arrays.poses, kept.poses)
 
+
+
+@pytest.fixture(scope="module")
+def symmetric_models():
+    """An exact box (its 4 rotations) and an exact 64-sided cylinder (rotation about its axis
+    and half turns across it)."""
+    import trimesh
+
+    from contactpose.model.object_model import ObjectModel
+    return {"box": ObjectModel.from_mesh(trimesh.creation.box([0.1, 0.06, 0.04])),
+            "cylinder": ObjectModel.from_mesh(trimesh.creation.cylinder(0.03, 0.1, sections=64))}
+
+
+def _twin_moves(group, rng, k):
+    """k random members of the group as object-frame transforms (a turn about the axis, if any,
+    after a discrete rotation)."""
+    from scipy.spatial.transform import Rotation
+    moves = []
+    for _ in range(k):
+        G = group.rotations[rng.integers(len(group.rotations))].copy()
+        if len(group.axes):
+            turn = np.eye(4)
+            turn[:3, :3] = Rotation.from_rotvec(rng.uniform(-np.pi, np.pi) * group.axes[0]).as_matrix()
+            turn[:3, 3] = group.centre - turn[:3, :3] @ group.centre
+            G = G @ turn
+        moves.append(G)
+    return moves
+
+
+@pytest.mark.parametrize("name", ["box", "cylinder"])
+def test_canonical_twin_is_one_pose_per_placement(symmetric_models, name):
+    """Every twin T G of a pose has the same canonical twin, and that twin places the surface as
+    T does: T⁻¹ times it moves the surface points onto the surface (trimesh's nearest point on
+    the mesh; near 0 on the box, within FINE_FRAC on the 64-sided prism that counts as a body
+    of revolution)."""
+    import trimesh
+
+    from contactpose.model.symmetry import FINE_FRAC, symmetry
+    model = symmetric_models[name]
+    mesh = trimesh.Trimesh(model.vertices, model.faces, process=False)
+    group = symmetry(model)
+    assert group.exact and not group.trivial and len(group.axes) == (name == "cylinder")
+    rng = np.random.default_rng(8)
+    for _ in range(10):
+        T = simulate.random_pose(rng, max_translation=0.05)
+        twins = np.stack([T @ G for G in _twin_moves(group, rng, 6)])
+        canonical = group.canonical(np.concatenate([T[None], twins]))
+        assert np.allclose(canonical, canonical[0], atol=1e-9)
+        move = np.linalg.solve(T, canonical[0])
+        moved = model.surface_points @ move[:3, :3].T + move[:3, 3]
+        limit = (FINE_FRAC if len(group.axes) else 1e-6) * model.diameter
+        assert mesh.nearest.on_surface(moved)[1].max() < limit
+
+
+@pytest.mark.parametrize("name, points, normals", [
+    ("box", [[0.0, 0.0, 0.02], [0.05, 0.01, 0.0], [0.01, 0.03, 0.005], [-0.05, 0.0, 0.01]],
+     [[0, 0, 1], [1, 0, 0], [0, 1, 0], [-1, 0, 0]]),
+    ("cylinder", [[0.03 * np.cos(a), 0.03 * np.sin(a), z] for a, z in zip(np.radians([0, 100, 200, 290]),
+                                                                          [0.01, -0.02, 0.03, 0.0])],
+     [[np.cos(a), np.sin(a), 0.0] for a in np.radians([0, 100, 200, 290])]),
+])
+def test_twins_of_a_placement_are_listed_once(symmetric_models, name, points, normals):
+    """On a symmetric object every assignment's twins count as one distinct pose: no two kept
+    poses place the surface alike (ADD-S on the surface points, by brute force over all pairs),
+    every dropped pose places it as a kept one does, and the pose the contacts were taken at is
+    still listed modulo the symmetry, within the near-copy radius (the cylinder's grasp leaves
+    a slide along its axis free). Without twins (a vision prior picks among them) the twins
+    stay apart."""
+    from contactpose.contacts import Contacts
+    from contactpose.geometry.metrics import adds_many
+    from contactpose.scoring.classes import distinct_radius
+    model = symmetric_models[name]
+    contacts = Contacts(np.asarray(points, float), object_normals=np.asarray(normals, float))
+    every = localize(model, contacts, distinct=False, keep="all", diagnose=False, **NOISE).hypotheses.arrays
+    same, radius = 0.01 * model.diameter, distinct_radius(model, NOISE["position_noise"])
+    kept, _ = distinct_poses(model, every, NOISE["position_noise"], merge_twins=True)
+    apart, _ = distinct_poses(model, every, NOISE["position_noise"], merge_twins=False)
+    adds = lambda A, B: np.array([adds_many(A, b, model.surface_points, model.surface_tree) for b in B])  # noqa: E731
+    between = adds(kept.poses, kept.poses)
+    assert np.all(between[~np.eye(len(kept.cost), dtype=bool)] > same)
+    assert np.all(adds(every.poses, kept.poses).min(axis=0) <= radius)
+    assert adds(kept.poses, np.eye(4)[None]).min() <= radius
+    assert len(apart.cost) > len(kept.cost)
+    listed = localize(model, contacts, diagnose=False, **NOISE)
+    assert len(listed.hypotheses) == len(kept.cost)

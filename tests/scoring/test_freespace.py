@@ -209,8 +209,8 @@ def test_localize_drops_hypotheses_no_finger_can_make(channel):
         g = simulate.grasp(channel, rng, n=4, noise="bounded", **noise)
         if free_space_violations(channel, g.facets[None], g.pose[None], g.contacts, 2 * SLOT)[0]:
             continue  # a true contact no wide finger could make
-        full = localize(channel, g.contacts, **noise).hypotheses.arrays
-        kept = localize(channel, g.contacts, finger_radius=2 * SLOT, **noise).hypotheses.arrays
+        full = localize(channel, g.contacts, twins=True, **noise).hypotheses.arrays
+        kept = localize(channel, g.contacts, finger_radius=2 * SLOT, twins=True, **noise).hypotheses.arrays
         bad = free_space_violations(channel, full.facets, full.poses, g.contacts, 2 * SLOT) & ~full.fit.underdetermined
         assert sorted(map(tuple, kept.facets)) == sorted(map(tuple, full.facets[~bad]))
         labels = channel.patches.labels if channel.patch_table is not None else np.arange(channel.num_facets)

@@ -329,7 +329,8 @@ def test_prior_picks_the_symmetric_twin_near_it(box):
     hits = 0
     for _ in range(5):
         g = simulate.grasp(box, rng, n=4, position_noise=tol.position_noise, normal_noise_deg=1.0)
-        arrays = localize(box, g.contacts, position_noise=tol.position_noise, normal_noise_deg=1.0).hypotheses.arrays
+        arrays = localize(box, g.contacts, position_noise=tol.position_noise, normal_noise_deg=1.0,
+                          twins=True).hypotheses.arrays  # every twin, for the prior to choose from
         prior = PosePrior(g.pose, sigma_rot_deg=10.0, sigma_trans=0.05 * box.diameter)
         ref = refine.refine_hypotheses(box, g.contacts, arrays, tol, prior=prior)
         hits += rotation_error_deg(ref.poses[0], g.pose) < 5.0

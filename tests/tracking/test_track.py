@@ -275,7 +275,7 @@ def test_track_set_fills_its_tracks_with_distinct_starts(carton_model):
     carton turns onto itself by a half turn about z: its twins coincide too."""
     noise = dict(position_noise=0.0025 * carton_model.diameter, normal_noise_deg=1.0)
     g = simulate.grasp(carton_model, np.random.default_rng(1), n=4, **noise)
-    found = [(h.facets, h.pose) for h in localize(carton_model, g.contacts, keep="all", **noise).hypotheses]
+    found = [(h.facets, h.pose) for h in localize(carton_model, g.contacts, keep="all", twins=True, **noise).hypotheses]
     tol = Tolerance.from_noise(noise["position_noise"], 1.0)
     half_turn = np.diag([-1.0, -1.0, 1.0, 1.0])  # the carton's symmetry (its rotation: about z)
     twins = [s for s in found if rotation_error_deg(s[1], found[0][1] @ half_turn) < MERGE_DEG]

@@ -43,7 +43,7 @@ def test_twins_of_one_placement_merge_and_track_the_truth(torus):
     rng = np.random.default_rng(0)
     group = _torus_group()
     g = simulate.grasp(torus, rng, n=4, **NOISE)
-    result = localize(torus, g.contacts, keep="all", **NOISE)
+    result = localize(torus, g.contacts, keep="all", twins=True, **NOISE)
     poses = np.stack([h.pose for h in result.hypotheses])
     twins = poses[symmetric_errors(poses, g.pose, group)[0] < MERGE_DEG]
     raw = rotation_error_deg(twins[:, None], twins[None]) + 1e3 * np.eye(len(twins))
