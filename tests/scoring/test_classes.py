@@ -173,3 +173,8 @@ def test_twins_of_a_placement_are_listed_once(symmetric_models, name, points, no
     assert len(apart.cost) > len(kept.cost)
     listed = localize(model, contacts, diagnose=False, **NOISE)
     assert len(listed.hypotheses) == len(kept.cost)
+    if name == "box":  # a determined grasp: a prior keeps the twins apart, as twins=True does
+        from contactpose.types import PosePrior
+        with_prior = localize(model, contacts, diagnose=False, prior=PosePrior(np.eye(4), 10.0, 0.01), **NOISE)
+        assert with_prior.num_hypotheses == localize(model, contacts, diagnose=False, twins=True,
+                                                     **NOISE).num_hypotheses > listed.num_hypotheses
