@@ -124,13 +124,13 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
             arrays = drop_blocked(model, contacts, arrays, finger_radius)
     assignments = len(arrays.cost)
     if fast and distinct:
-        refit = surface and solver == "closed-form"
+        refit, every = surface and solver == "closed-form", arrays
         with _clock(timing, "rank"):  # twins merge after the surface fit: it fits the same best as without
             arrays = stages.distinct(model, arrays, tolerance, deadline, merge_twins=merge_twins and not refit)
         if refit:
             with _clock(timing, "pose"):
                 arrays = stages.surface_hypotheses(model, contacts, arrays, tolerance, deadline,
-                                                   merge_twins=merge_twins)
+                                                   merge_twins=merge_twins, every=every)
     if solver == "factor-graph":
         with _clock(timing, "refine"):
             arrays, rescue = stages.refine_hypotheses(model, contacts, arrays, tolerance, prior=prior, robust=robust,

@@ -23,11 +23,12 @@ from itertools import combinations
 import numpy as np
 
 from contactpose.costs.association import fitting_members, nearest_fit_facets
+from contactpose.geometry.metrics import rms_displacement
 from contactpose.options import DEFAULT_REFINE, OUTLIER_PENALTY, fit_threshold
 from contactpose.progress import Deadline
 from contactpose.scoring import evidence, refine
 from contactpose.scoring import rank as ranking
-from contactpose.scoring.classes import MAX_CLASS_HYPOTHESES, distinct_poses, pose_classes
+from contactpose.scoring.classes import MAX_CLASS_HYPOTHESES, distinct_poses, distinct_radius, pose_classes
 from contactpose.scoring.infacet import within_noise
 from contactpose.scoring.status import status as status_of
 from contactpose.search.grow import grow_tree, triple_test, warn_explosion
@@ -51,6 +52,10 @@ TREE_SHARE = 0.25
 #: Seconds the distinct-pose grouping may always take, even once the time limit has passed;
 #: past both, the rows not yet grouped are listed as they are (status "time_limit").
 GROUPING_GRACE = 2.0
+#: A best surface pose that does not fit within noise has up to NEAR_COPY_REFITS of its
+#: near-copies fitted too, those within NEAR_COPY_REACH near-copy radii of it (_refit_near_copies).
+NEAR_COPY_REFITS = 64
+NEAR_COPY_REACH = 2.0
 #: Hypotheses posed and ranked at a time (the grain of their deadline checks).
 POSE_CHUNK = 65_536
 #: With keep="fitting", a search none of whose hypotheses fits within noise lists its best this many.
@@ -253,18 +258,45 @@ def distinct(model, arrays, tolerance, deadline, merge_twins=False):
     return arrays
 
 
-def surface_hypotheses(model, contacts, arrays, tolerance, deadline, k=SURFACE_REFINE, merge_twins=False):
+def surface_hypotheses(model, contacts, arrays, tolerance, deadline, k=SURFACE_REFINE, merge_twins=False,
+                       every=None):
     """The best hypotheses posed on the surface contact model where it fits better than their
     facets (solvers.surface.surface_poses): their facets those the contacts land on, their
-    residuals the contact model's; re-ranked, then one per distinct pose (:func:`distinct`)."""
+    residuals the contact model's; re-ranked, then one per distinct pose (:func:`distinct`).
+    every : the assignments before the distinct-pose grouping; when the best still does not
+    fit within noise, its near-copies among them are fitted too (:func:`_refit_near_copies`)."""
     rows, fit, facets, landed = surface_poses(model, contacts, arrays, tolerance, k)
     if len(rows):
         moved = ranking.hypothesis_arrays(model, contacts, facets, fit, tolerance, order=False, surface=landed)
-        arrays = ranking.replaced(arrays, rows, moved)
-        _, first = np.unique(arrays.facets, axis=0, return_index=True)  # two fits may land alike: keep the better
-        if len(first) != len(arrays.cost):
-            arrays = arrays.take(np.sort(first))
+        arrays = _first_of_each_tuple(ranking.replaced(arrays, rows, moved))
+    if every is not None and len(arrays.cost) and arrays.chi2[0] > fit_threshold(contacts.n) and not deadline.passed:
+        arrays = _refit_near_copies(model, contacts, arrays, every, tolerance)
     return distinct(model, arrays, tolerance, deadline, merge_twins)
+
+
+def _refit_near_copies(model, contacts, arrays, every, tolerance):
+    """The ranked hypotheses with the best near-copy of the first posed on the surface, when it
+    ranks better: up to NEAR_COPY_REFITS of the assignments ``every`` (HypothesisArrays, ranked)
+    within NEAR_COPY_REACH near-copy radii of the first pose, each fitted from its own facet
+    pose. On a rough scan the surface fit's basin is narrower than the spread of one
+    placement's near-copies, and the first of them need not start inside it
+    (research/surface.md, "the surface fit's basin")."""
+    reach = NEAR_COPY_REACH * distinct_radius(model, tolerance.position_noise)
+    near = np.flatnonzero(rms_displacement(every.poses, arrays.poses[0], *model.class_moments) <= reach)
+    rows, fit, facets, landed = surface_poses(model, contacts, every.take(near), tolerance, NEAR_COPY_REFITS)
+    if not len(rows):
+        return arrays
+    moved = ranking.hypothesis_arrays(model, contacts, facets, fit, tolerance, order=False, surface=landed)
+    best = int(np.argmin(moved.cost))
+    if moved.cost[best] >= arrays.cost[0]:
+        return arrays
+    return _first_of_each_tuple(arrays.merged(moved.take([best])))
+
+
+def _first_of_each_tuple(arrays):
+    """The ranked hypotheses without a later one of the same facet tuple (two fits may land alike)."""
+    _, first = np.unique(arrays.facets, axis=0, return_index=True)
+    return arrays if len(first) == len(arrays.cost) else arrays.take(np.sort(first))
 
 
 def refine_hypotheses(model, contacts, arrays, tolerance, *, prior=None, robust="huber", k=DEFAULT_REFINE):

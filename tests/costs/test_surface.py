@@ -337,3 +337,34 @@ def test_surface_factor_jacobian_is_the_pose3_tangent_derivative():
         assert np.allclose(b, -e, atol=1e-12)
         compared += 1
     assert compared >= 20
+
+
+@pytest.mark.parametrize("seed", [5, 6])
+def test_near_copies_of_the_best_are_fitted_on_the_surface_when_it_does_not_fit(seed):
+    """stages._refit_near_copies against brute force: every assignment within NEAR_COPY_REACH
+    near-copy radii of the first pose fitted on the surface from its own facet pose
+    (solvers.surface.surface_fit); the first hypothesis comes back with the least χ² among those
+    fits when that beats its own, and as it was otherwise."""
+    from contactpose import localize, stages
+    from contactpose.geometry.metrics import rms_displacement
+    from contactpose.scoring.classes import distinct_radius
+
+    rng = np.random.default_rng(seed)
+    model = ObjectModel.from_mesh(objects.load("rock1k"), patch_tol_deg=10.0)
+    pose = np.eye(4)
+    pose[:3, :3] = Rotation.from_rotvec(rng.normal(size=3)).as_matrix()
+    contacts, _ = _edge_grasp(model, rng, 0.05 * model.diameter, pose)
+    sx = 0.002 * model.diameter
+    tol = Tolerance.from_noise(sx, 1.0)
+    every = localize(model, contacts, position_noise=sx, diagnose=False, distinct=False).hypotheses.arrays
+    first = every.take([0])
+    got = stages._refit_near_copies(model, contacts, first, every, tol)
+    reach = stages.NEAR_COPY_REACH * distinct_radius(model, sx)
+    near = np.flatnonzero(rms_displacement(every.poses, first.poses[0], *model.class_moments) <= reach)
+    near = near[~every.fit.underdetermined[near]][:stages.NEAR_COPY_REFITS]
+    brute = min(surface_fit(model, contacts, every.fit.R[k], every.fit.t[k], every.facets[k], tol)[5] for k in near)
+    assert len(near) > 1
+    if brute < first.chi2[0] - 1e-9:
+        assert got.chi2[0] == pytest.approx(brute, rel=1e-9) and len(got.cost) <= 2  # 1: it landed on first's facets
+    else:
+        assert np.array_equal(got.poses, first.poses)
