@@ -112,7 +112,7 @@ def find_hypotheses(model, contacts, tolerance, *, solver="closed-form", prior=N
         fitting = np.flatnonzero(found.chi2 <= fit_threshold(contacts.n))
         if len(fitting):
             arrays = arrays.merged(found.take(fitting))
-            arrays = arrays.take(np.sort(np.unique(arrays.facets, axis=0, return_index=True)[1]))
+            arrays = _first_of_each_tuple(arrays)
             widened = EDGES_NOTE
     return arrays, timing, grown, widened
 
@@ -294,7 +294,8 @@ def _refit_near_copies(model, contacts, arrays, every, tolerance):
 
 
 def _first_of_each_tuple(arrays):
-    """The ranked hypotheses without a later one of the same facet tuple (two fits may land alike)."""
+    """The ranked hypotheses without a later one of the same facet tuple (found twice, or two
+    fits that land alike)."""
     _, first = np.unique(arrays.facets, axis=0, return_index=True)
     return arrays if len(first) == len(arrays.cost) else arrays.take(np.sort(first))
 
@@ -322,7 +323,7 @@ def refine_hypotheses(model, contacts, arrays, tolerance, *, prior=None, robust=
         return out, ""
     wide = tolerance.widened(refine.RESCUE_WIDEN)
     arrays = arrays.merged(search(model, contacts, wide, prior=prior)[0])
-    arrays = arrays.take(np.sort(np.unique(arrays.facets, axis=0, return_index=True)[1]))  # found twice
+    arrays = _first_of_each_tuple(arrays)  # found twice
     how = f"searched again with {refine.RESCUE_WIDEN:g}x the pair tolerances"
     if not evidence.agrees_with_prior(model, arrays, tolerance, prior):
         facets = nearest_fit_facets(model, contacts, prior.pose, tolerance)
