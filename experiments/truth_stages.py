@@ -53,7 +53,7 @@ from contactpose.model.object_model import ObjectModel, merged_mesh
 from contactpose.search import find_pairs
 from contactpose.search.tree import TripleTest, join_tuples
 from contactpose.sim import ycb
-from contactpose.uncertainty.bounds import local_quadric, pose_information
+from contactpose.uncertainty.bounds import rotation_bound_deg
 
 HERE = Path(__file__).resolve().parent
 OUT = HERE.parent / "results" / "realistic_contacts"
@@ -133,11 +133,9 @@ def placement_rank(s, poses, truth, limit):
 
 def bound_rotation_deg(s, points, normals, noise):
     """RMS rotation error (degrees) of an efficient estimator for these contacts, the location
-    of each unknown on a quadric fitted within 3 % of the diameter (uncertainty.bounds)."""
-    fits = [local_quadric(s.vertices, s.tree, x, nu, 0.03 * s.model.diameter) for x, nu in zip(points, normals)]
-    info = pose_information(points, normals, noise["position_noise"], np.radians(noise["normal_noise_deg"]),
-                            hessians=np.stack([H for _, H in fits]), tangents=np.stack([T for T, _ in fits]))
-    return float(np.degrees(np.sqrt(np.trace(np.linalg.pinv(info)[:3, :3]))))
+    of each unknown on a local quadric (uncertainty.bounds.rotation_bound_deg)."""
+    return rotation_bound_deg(s.vertices, s.tree, s.model.diameter, points, normals, noise["position_noise"],
+                              np.radians(noise["normal_noise_deg"]))
 
 
 def stage_of(bench, s, contacts, pose, facets, points, normals, kinds, noise):

@@ -224,3 +224,16 @@ def test_memory_particle_filter_beats_dead_reckoning_on_a_held_object():
             reckoned.append(metrics.rotation_error_deg(dead, X))
     assert np.median(filtered) < 0.5 * np.median(reckoned)
     assert np.median(filtered) < 3.0
+
+
+def test_ceiling_smoke(tmp_path):
+    """experiments/ceiling.py on the rock, two grasps per radius: a row each, posteriors in
+    [0, 1] with the true placement's at most the most probable one's, a finite bound, and the
+    summary's row."""
+    assert run_all.load("ceiling").main(["rock", "--grasps", "2", "--out", str(tmp_path)]) == 0
+    rows = sweep.read_rows(tmp_path / "grasps.csv")
+    assert len(rows) == 4 and {float(r["radius_frac"]) for r in rows} == {0.02, 0.05}
+    for r in rows:
+        assert 0.0 <= float(r["p_true"]) <= float(r["ceiling"]) + 1e-12 <= 1.0 + 1e-12
+        assert np.isfinite(float(r["bound_rot_deg"])) and float(r["true_chi2"]) >= 0.0
+    assert "| rock | 2 % | 2 (all) |" in (tmp_path / "summary.md").read_text()

@@ -20,7 +20,10 @@ import numpy as np
 
 from contactpose.geometry.se3 import hat
 
-__all__ = ["local_quadric", "pose_information", "tangent_basis"]
+__all__ = ["local_quadric", "pose_information", "rotation_bound_deg", "tangent_basis"]
+
+#: rotation_bound_deg fits each contact's quadric to the vertices within this share of the diameter.
+QUADRIC_RADIUS_FRAC = 0.03
 
 
 def tangent_basis(normal):
@@ -75,3 +78,15 @@ def pose_information(points, normals, position_noise, normal_noise, hessians=Non
     return A - B @ np.linalg.solve(C, B.T)
 
 
+
+
+def rotation_bound_deg(vertices, tree, diameter, points, normals, position_noise, normal_noise):
+    """RMS rotation error (degrees) of an efficient estimator from contacts at object-frame
+    points (n, 3) with outward unit normals (n, 3), each contact's location unknown on the
+    quadric fitted within QUADRIC_RADIUS_FRAC of the diameter (:func:`local_quadric`;
+    vertices (V, 3) and their cKDTree ``tree``); σ_x a length, σ_n radians: √trace of the
+    rotation block of the inverse information (:func:`pose_information`)."""
+    fits = [local_quadric(vertices, tree, x, nu, QUADRIC_RADIUS_FRAC * diameter) for x, nu in zip(points, normals)]
+    info = pose_information(points, normals, position_noise, normal_noise, hessians=np.stack([H for _, H in fits]),
+                            tangents=np.stack([T for T, _ in fits]))
+    return float(np.degrees(np.sqrt(np.trace(np.linalg.pinv(info)[:3, :3]))))

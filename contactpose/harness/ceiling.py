@@ -1,0 +1,127 @@
+"""The best strict top-1 any method can reach on a grasp: the posterior of each placement.
+
+On a nearly symmetric object another placement can fit the contacts as well as the true one,
+and then no method tells them apart more often than the likelihoods allow. With a uniform
+prior over placements, placement k of least surface χ²_k (costs.surface, research/surface.md)
+has posterior p_k = exp(-χ²_k / 2) / Σ_j exp(-χ²_j / 2) (the posterior widths taken alike),
+and the decision that picks the most probable placement is right with probability max_k p_k,
+more often than any other decision can be. Over grasps drawn as the benchmark draws them, the
+mean of max_k p_k estimates the highest share of strict top-1 successes any method can have:
+the *ceiling*. A share above it would be luck of the draw (research/ceiling.md).
+
+The placements are the true one (the surface fit from the true pose, each contact walking
+from its nearest facet, or where that fit leaves the true placement, the χ² at the true pose
+itself; joined by the search's poses that are strictly right) and the search's
+strictly wrong ones (rotation >= 5° or translation >= 5 % of the diameter modulo the object's
+symmetry), each fitted on the surface from its facets; wrong fits strictly right of one
+another are one placement. Placements the search never found are not counted.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from contactpose.costs.association import nearest_fit_facets
+from contactpose.costs.surface import surface_residuals
+from contactpose.geometry.metrics import SUCCESS_ROT_DEG, SUCCESS_TRANS_FRAC
+from contactpose.localize import localize
+from contactpose.model.symmetry import symmetry
+from contactpose.solvers.surface import surface_fit
+
+#: The search's best distinct poses fitted on the surface (placement_fits).
+CHECKS = 32
+#: χ² within this of the true placement's count as fitting as well (wrong_fits_better).
+TIE_CHI2 = 1e-6
+
+__all__ = ["CHECKS", "PlacementFits", "placement_fits", "posteriors"]
+
+
+@dataclass(frozen=True)
+class PlacementFits:
+    """true_chi2 : the least surface χ² of the true placement; wrong_chi2 (W,) : of each
+    strictly wrong placement found; best_right : whether the search's best pose is strictly
+    right; drifted : the surface fit from the true pose left the true placement (true_chi2 is
+    then the χ² at the true pose, or of a strictly right pose of the search).
+    posterior : (W + 1,) the true placement's first (:func:`posteriors`)."""
+
+    true_chi2: float
+    wrong_chi2: np.ndarray
+    best_right: bool
+    drifted: bool
+
+    @property
+    def posterior(self):
+        return posteriors(np.concatenate([[self.true_chi2], self.wrong_chi2]))
+
+    @property
+    def ceiling(self):
+        """Probability that the most probable placement is the true one (max_k p_k)."""
+        return float(self.posterior.max())
+
+    @property
+    def wrong_fits_better(self):
+        """A strictly wrong placement fits at least as well as the true one."""
+        return bool(len(self.wrong_chi2) and self.wrong_chi2.min() <= self.true_chi2 + TIE_CHI2)
+
+
+def posteriors(chi2):
+    """p_k = exp(-χ²_k / 2) / Σ_j exp(-χ²_j / 2) of placements with least χ² ``chi2`` (K,). -> (K,)"""
+    chi2 = np.asarray(chi2, dtype=np.float64)
+    w = np.exp(-0.5 * (chi2 - chi2.min()))
+    return w / w.sum()
+
+
+def placement_fits(model, contacts, true_pose, *, group=None, checks=CHECKS, **options):
+    """The surface χ² of the true placement and of each strictly wrong one the search finds
+    (see the module). group : the symmetry modulo which a pose is right (default
+    ``symmetry(model)``); options : for ``localize`` (the noise, ``finger_radius``), which lists
+    every distinct pose and twin here. -> PlacementFits"""
+    group = symmetry(model) if group is None else group
+    result = localize(model, contacts, keep="all", twins=True, diagnose=False, **options)
+    tolerance, D = result.tolerance, model.diameter
+    true_chi2, drifted = _true_chi2(model, contacts, true_pose, tolerance, group)
+    arrays = result.hypotheses.arrays
+    wrong_poses, wrong_chi2 = [], []
+    for k in range(min(checks, len(arrays.cost))):
+        R, t, _, _, _, chi2 = surface_fit(model, contacts, arrays.fit.R[k], arrays.fit.t[k], arrays.facets[k],
+                                          tolerance)
+        pose = np.eye(4)
+        pose[:3, :3], pose[:3, 3] = R, t
+        if _right(group, pose, true_pose, D):
+            true_chi2 = min(true_chi2, chi2)
+        else:
+            wrong_poses.append(pose)
+            wrong_chi2.append(chi2)
+    best_right = bool(len(arrays.cost)) and _right(group, arrays.poses[0], true_pose, D)
+    return PlacementFits(float(true_chi2), _one_per_placement(group, wrong_poses, wrong_chi2, D), best_right, drifted)
+
+
+def _true_chi2(model, contacts, true_pose, tolerance, group):
+    """χ²_S of the surface fit from the true pose, each contact walking from its nearest
+    facet, or, when that fit leaves the true placement, χ²_S at the true pose. -> (χ², drifted)"""
+    start = nearest_fit_facets(model, contacts, true_pose, tolerance)
+    R, t = true_pose[:3, :3], true_pose[:3, 3]
+    fitted = surface_fit(model, contacts, R, t, start, tolerance)
+    pose = np.eye(4)
+    pose[:3, :3], pose[:3, 3] = fitted[0], fitted[1]
+    if _right(group, pose, true_pose, model.diameter):
+        return fitted[5], False
+    return float(np.sum(surface_residuals(model, contacts, R, t, start, tolerance) ** 2)), True
+
+
+def _right(group, pose, true_pose, diameter):
+    rot, trans = group.errors(pose, true_pose)
+    return bool(rot < SUCCESS_ROT_DEG and trans < SUCCESS_TRANS_FRAC * diameter)
+
+
+def _one_per_placement(group, poses, chi2, diameter):
+    """The least χ² of each placement among wrong fits, best first: a fit strictly right of
+    a better one joins it. -> (W,)"""
+    order = np.argsort(chi2, kind="stable")
+    kept = []
+    for k in order:
+        if not any(_right(group, poses[k], poses[j], diameter) for j in kept):
+            kept.append(k)
+    return np.array([chi2[k] for k in kept], dtype=np.float64)
