@@ -130,7 +130,7 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
         if refit:
             with _clock(timing, "pose"):
                 arrays = stages.surface_hypotheses(model, contacts, arrays, tolerance, deadline,
-                                                   merge_twins=merge_twins, every=every)
+                                                   merge_twins=merge_twins, every=every, multistart=True)
     if solver == "factor-graph":
         with _clock(timing, "refine"):
             arrays, rescue = stages.refine_hypotheses(model, contacts, arrays, tolerance, prior=prior, robust=robust,

@@ -36,7 +36,7 @@ from contactpose.search.tree import join_tuples
 from contactpose.solvers.closed_form import fit_poses
 from contactpose.solvers.lm import fit_lm_all
 from contactpose.solvers.polish import polished
-from contactpose.solvers.surface import SURFACE_REFINE, surface_poses
+from contactpose.solvers.surface import SURFACE_REFINE, multistart_poses, surface_poses
 
 #: When nothing matches, the pair tolerances are widened by these factors in turn.
 WIDEN_SCHEDULE = (1.5, 2.0)
@@ -259,19 +259,31 @@ def distinct(model, arrays, tolerance, deadline, merge_twins=False):
 
 
 def surface_hypotheses(model, contacts, arrays, tolerance, deadline, k=SURFACE_REFINE, merge_twins=False,
-                       every=None):
+                       every=None, multistart=False):
     """The best hypotheses posed on the surface contact model where it fits better than their
     facets (solvers.surface.surface_poses): their facets those the contacts land on, their
     residuals the contact model's; re-ranked, then one per distinct pose (:func:`distinct`).
-    every : the assignments before the distinct-pose grouping; when the best still does not
-    fit within noise, its near-copies among them are fitted too (:func:`_refit_near_copies`)."""
-    rows, fit, facets, landed = surface_poses(model, contacts, arrays, tolerance, k)
-    if len(rows):
-        moved = ranking.hypothesis_arrays(model, contacts, facets, fit, tolerance, order=False, surface=landed)
-        arrays = _first_of_each_tuple(ranking.replaced(arrays, rows, moved))
+    multistart : the best MULTISTART_ROWS of those then fitted again from starts around their
+    poses too, where that lowers χ² (solvers.surface.multistart_poses). every : the
+    assignments before the distinct-pose grouping; when the best still does not fit within
+    noise, its near-copies among them are fitted too (:func:`_refit_near_copies`)."""
+    arrays = _moved(model, contacts, arrays, tolerance, surface_poses(model, contacts, arrays, tolerance, k))
+    if multistart and len(arrays.cost) and not deadline.passed:
+        arrays = _moved(model, contacts, arrays, tolerance, multistart_poses(model, contacts, arrays, tolerance))
     if every is not None and len(arrays.cost) and arrays.chi2[0] > fit_threshold(contacts.n) and not deadline.passed:
         arrays = _refit_near_copies(model, contacts, arrays, every, tolerance)
     return distinct(model, arrays, tolerance, deadline, merge_twins)
+
+
+def _moved(model, contacts, arrays, tolerance, posed):
+    """The ranked hypotheses with the rows of ``posed`` (rows, fit, facets, landing, as
+    solvers.surface.surface_poses returns) moved to their surface poses, re-ranked, a tuple
+    found twice kept once."""
+    rows, fit, facets, landed = posed
+    if not len(rows):
+        return arrays
+    moved = ranking.hypothesis_arrays(model, contacts, facets, fit, tolerance, order=False, surface=landed)
+    return _first_of_each_tuple(ranking.replaced(arrays, rows, moved))
 
 
 def _refit_near_copies(model, contacts, arrays, every, tolerance):

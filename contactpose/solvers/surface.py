@@ -15,7 +15,9 @@ from functools import partial
 import gtsam
 import numpy as np
 from numba import njit
+from scipy.spatial.transform import Rotation
 
+from contactpose.costs.association import nearest_fit_facets
 from contactpose.costs.frame import object_frame
 from contactpose.costs.surface import SurfaceResiduals, face_costs, landing, surface_residuals, surface_rows
 from contactpose.geometry.se3 import retract3
@@ -32,6 +34,14 @@ RESTARTS = 3
 RESTART_TOL = 1e-10
 #: localize(..., surface=True) fits this many of its best hypotheses on the surface.
 SURFACE_REFINE = 8
+#: localize fits its best MULTISTART_ROWS surface poses again from 12 starts around each: the
+#: pose turned by ±MULTISTART_TURN_DEG about each object axis, and moved by
+#: ±MULTISTART_SHIFT_FRAC of the diameter along each (multistart_poses). On a rough scan the
+#: χ²_S of a pose a few degrees off lies behind a ridge from the truth's (research/surface.md,
+#: "Starts around the best poses").
+MULTISTART_ROWS = 2
+MULTISTART_TURN_DEG = 5.0
+MULTISTART_SHIFT_FRAC = 0.01
 #: needs_surface: the least cost χ²_S must be below the facets' by this much (relative).
 GATE_TOL = 1e-9
 #: The fit runs in stages with σ_x widened by these factors: with a wide σ_x an edge or vertex
@@ -156,6 +166,51 @@ def surface_poses(model, contacts, arrays, tolerance, k=SURFACE_REFINE):
         R, t, f = arrays.fit.R[r], arrays.fit.t[r], arrays.facets[r]
         if needs_surface(model, contacts, R, t, f, tolerance):
             fits.append((r, surface_fit(model, contacts, R, t, f, tolerance)))
+    return _lowered(arrays, fits, tolerance)
+
+
+def multistart_poses(model, contacts, arrays, tolerance, k=MULTISTART_ROWS):
+    """The best ``k`` determined hypotheses of the ranked arrays fitted on the surface from
+    each of :func:`multistart_starts` around their poses (:func:`multistart_fit`), those
+    whose least χ²_S (outlier penalty included) is below their χ²; returns as
+    :func:`surface_poses` does."""
+    rows = np.flatnonzero(~arrays.fit.underdetermined)[:k]
+    fits = [(r, multistart_fit(model, contacts, arrays.fit.R[r], arrays.fit.t[r], arrays.facets[r], tolerance))
+            for r in rows]
+    return _lowered(arrays, fits, tolerance)
+
+
+def multistart_starts(R, t, diameter):
+    """The 12 starts around the pose (R (3, 3), t (3,)): turned by ±MULTISTART_TURN_DEG about
+    each axis of the object frame (R Exp(±θ e_i), t) and moved by ±MULTISTART_SHIFT_FRAC of the
+    diameter along each (R, t ± s R e_i). -> (12, 4, 4)"""
+    steps = np.concatenate([np.eye(3), -np.eye(3)])
+    starts = np.tile(np.eye(4), (12, 1, 1))
+    starts[:6, :3, :3] = R @ Rotation.from_rotvec(np.radians(MULTISTART_TURN_DEG) * steps).as_matrix()
+    starts[:6, :3, 3] = t
+    starts[6:, :3, :3] = R
+    starts[6:, :3, 3] = t + MULTISTART_SHIFT_FRAC * diameter * steps @ R.T
+    return starts
+
+
+def multistart_fit(model, contacts, R, t, facets, tolerance):
+    """The :func:`surface_fit` of least χ²_S among those from (R, t) walking from ``facets``
+    and from each of :func:`multistart_starts`, each contact walking from its best-fitting
+    facet there (costs.association.nearest_fit_facets; an unassigned finger, facet −1, stays
+    out). Returns as :func:`surface_fit` does."""
+    best = surface_fit(model, contacts, R, t, facets, tolerance)
+    starts = multistart_starts(R, t, model.diameter)
+    nearest = np.where(np.asarray(facets) >= 0, nearest_fit_facets(model, contacts, starts, tolerance), -1)
+    for pose, start in zip(starts, nearest):
+        got = surface_fit(model, contacts, pose[:3, :3], pose[:3, 3], start, tolerance)
+        if got[5] < best[5]:
+            best = got
+    return best
+
+
+def _lowered(arrays, fits, tolerance):
+    """Of fits [(row, surface_fit result)], those whose χ²_S (outlier penalty included) is below
+    the row's χ², as :func:`surface_poses` returns them."""
     fits = [(r, got) for r, got in fits if got[5] + outlier_penalty(arrays.facets[r:r + 1])[0] < arrays.chi2[r]]
     rows = np.array([r for r, _ in fits], dtype=np.int64)
     fit = arrays.fit.take(rows)

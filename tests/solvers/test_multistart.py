@@ -1,0 +1,111 @@
+"""Starts around a pose (solvers.surface.multistart_fit) against brute force and a known answer:
+the least χ²_S of the surface fits from each start, and, from poses 5° off on the rock1k's
+rough surface, the true placement's own fit (the surface fit from the true pose) where the
+plain fit stops in a local minimum."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from contactpose import Contacts, ObjectModel
+from contactpose.contacts import Tolerance
+from contactpose.costs.association import nearest_fit_facets
+from contactpose.geometry.metrics import rotation_error_deg
+from contactpose.geometry.sampling import perturb_normals
+from contactpose.sim import fingertip, objects
+from contactpose.sim import grasps as simulate
+from contactpose.solvers.surface import MULTISTART_SHIFT_FRAC, MULTISTART_TURN_DEG, multistart_fit, multistart_starts, surface_fit
+
+OFF_DEG = 5.0
+
+
+@pytest.fixture(scope="module")
+def rock1k():
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return ObjectModel.from_mesh(objects.load("rock1k"))
+
+
+def grasps(model, count, seed):
+    """Rounded fingertips (5 % of the diameter) on the rock1k, noise 0.25 % and 1°: (Contacts,
+    true pose, a pose OFF_DEG from it) each."""
+    rng = np.random.default_rng(seed)
+    D = model.diameter
+    out = []
+    while len(out) < count:
+        pose = simulate.random_pose(rng, max_translation=0.5 * D)
+        got = fingertip.approach(model.vertices, model.faces, rng, 4, 0.05 * D, cone_deg=30.0, mode="cone")
+        if not got.hit.all():
+            continue
+        R, t = pose[:3, :3], pose[:3, 3]
+        points = got.points @ R.T + t + rng.normal(0.0, 0.0025 * D, got.points.shape)
+        normals = perturb_normals(got.normals @ R.T, np.radians(1.0), rng)
+        off = pose.copy()
+        axis = rng.normal(size=3)
+        off[:3, :3] = R @ Rotation.from_rotvec(np.radians(OFF_DEG) * axis / np.linalg.norm(axis)).as_matrix()
+        out.append((Contacts(points, object_normals=normals), pose, off))
+    return out
+
+
+def fit_from(model, contacts, pose, tolerance, facets=None):
+    start = nearest_fit_facets(model, contacts, pose, tolerance) if facets is None else facets
+    return surface_fit(model, contacts, pose[:3, :3], pose[:3, 3], start, tolerance)
+
+
+def test_the_starts_are_the_stated_turns_and_shifts():
+    rng = np.random.default_rng(3)
+    R, t, D = Rotation.random(random_state=4).as_matrix(), rng.normal(size=3), 0.2
+    starts = multistart_starts(R, t, D)
+    assert starts.shape == (12, 4, 4)
+    pose = np.eye(4)
+    pose[:3, :3], pose[:3, 3] = R, t
+    turns = [rotation_error_deg(s, pose) for s in starts]
+    shifts = np.linalg.norm(starts[:, :3, 3] - t, axis=1)
+    assert np.allclose(turns[:6], MULTISTART_TURN_DEG) and np.allclose(turns[6:], 0.0, atol=1e-6)
+    assert np.allclose(shifts[:6], 0.0) and np.allclose(shifts[6:], MULTISTART_SHIFT_FRAC * D)
+    # about and along the object frame's axes, each sign once
+    axes = np.concatenate([np.eye(3), -np.eye(3)])
+    got = Rotation.from_matrix(R.T @ starts[:6, :3, :3]).as_rotvec()
+    assert np.allclose(got, np.radians(MULTISTART_TURN_DEG) * axes)
+    assert np.allclose((starts[6:, :3, 3] - t) @ R, MULTISTART_SHIFT_FRAC * D * axes)
+
+
+def test_multistart_is_the_best_of_the_fits_from_every_start(rock1k):
+    """Brute force: the least χ²_S of surface_fit from the pose (walking from its facets) and
+    from each start (walking from the nearest-fit facets there), never above the plain fit."""
+    tolerance = Tolerance.from_noise(0.0025 * rock1k.diameter, 1.0)
+    for contacts, _, off in grasps(rock1k, 3, seed=11):
+        facets = nearest_fit_facets(rock1k, contacts, off, tolerance)
+        plain = fit_from(rock1k, contacts, off, tolerance, facets)
+        each = [plain[5]] + [fit_from(rock1k, contacts, s, tolerance)[5]
+                             for s in multistart_starts(off[:3, :3], off[:3, 3], rock1k.diameter)]
+        got = multistart_fit(rock1k, contacts, off[:3, :3], off[:3, 3], facets, tolerance)
+        assert got[5] == pytest.approx(min(each), rel=1e-12)
+        assert got[5] <= plain[5]
+
+
+def test_multistart_reaches_the_true_placement_where_the_plain_fit_stops(rock1k):
+    """From poses 5° off the truth on the rock1k's rough surface, the plain surface fit stops
+    in a local minimum above the true placement's (the fit from the true pose) in some grasps
+    (17 of 48). From the starts around the same pose the fit reaches that minimum or a lower
+    one within 2° of it in more than half of those (10; in most others a lower minimum
+    2.6-8° away)."""
+    tolerance = Tolerance.from_noise(0.0025 * rock1k.diameter, 1.0)
+    stuck = reached = 0
+    for contacts, pose, off in [g for seed in (5, 6, 7) for g in grasps(rock1k, 16, seed)]:
+        truth = fit_from(rock1k, contacts, pose, tolerance)
+        plain = fit_from(rock1k, contacts, off, tolerance)
+        if plain[5] <= truth[5] + 1.0:
+            continue
+        stuck += 1
+        got = multistart_fit(rock1k, contacts, off[:3, :3], off[:3, 3],
+                             nearest_fit_facets(rock1k, contacts, off, tolerance), tolerance)
+        a, b = np.eye(4), np.eye(4)
+        a[:3, :3], b[:3, :3] = got[0], truth[0]
+        reached += got[5] <= truth[5] + 1e-6 and rotation_error_deg(a, b) < 2.0
+    assert stuck >= 10
+    assert reached >= 0.5 * stuck
