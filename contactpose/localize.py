@@ -80,7 +80,8 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
     facets). "auto" (default): on a model of surface regions (``model.has_regions``: fine
     meshes, where it lowers the pose error and turns most poor fits of rounded fingertips into
     fits, research/surface.md), off on a facet table (coarse meshes, where it does not help);
-    it costs 1.6 ms per fitted hypothesis, SURFACE_REFINE of them at most. The samples use the
+    it costs 1.6 ms per fitted hypothesis, SURFACE_REFINE of them at most, and the best two are
+    fitted again from 12 starts around each (solvers.surface.multistart_fit). The samples use the
     surface contact model's posterior with ``surface`` or on a model of surface regions
     (``model.has_regions``), where the facet posterior is far too narrow (research/surface.md).
     keep : "fitting" lists, of the distinct poses, the best and those that fit the contacts

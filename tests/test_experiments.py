@@ -227,13 +227,19 @@ def test_memory_particle_filter_beats_dead_reckoning_on_a_held_object():
 
 
 def test_ceiling_smoke(tmp_path):
-    """experiments/ceiling.py on the rock, two grasps per radius: a row each, posteriors in
-    [0, 1] with the true placement's at most the most probable one's, a finite bound, and the
-    summary's row."""
+    """experiments/ceiling.py on the rock, two grasps per radius: a row each, the ceiling 0 where
+    a wrong placement fits better and one over the tying placements otherwise, posteriors in
+    [0, 1], a finite bound, and the summary's row; a run on the carton then keeps the rock's rows."""
     assert run_all.load("ceiling").main(["rock", "--grasps", "2", "--out", str(tmp_path)]) == 0
     rows = sweep.read_rows(tmp_path / "grasps.csv")
     assert len(rows) == 4 and {float(r["radius_frac"]) for r in rows} == {0.02, 0.05}
     for r in rows:
-        assert 0.0 <= float(r["p_true"]) <= float(r["ceiling"]) + 1e-12 <= 1.0 + 1e-12
+        beaten = float(r["wrong_chi2"]) < float(r["true_chi2"]) - 1e-6
+        assert float(r["ceiling"]) == (0.0 if beaten else 1.0 / (1 + int(r["ties"])))
+        assert 0.0 <= float(r["p_true"]) <= 1.0
         assert np.isfinite(float(r["bound_rot_deg"])) and float(r["true_chi2"]) >= 0.0
+    assert "| rock | 2 % | 2 (all) |" in (tmp_path / "summary.md").read_text()
+    assert run_all.load("ceiling").main(["carton", "--grasps", "1", "--out", str(tmp_path)]) == 0
+    again = sweep.read_rows(tmp_path / "grasps.csv")  # the rock's rows kept, the carton's added
+    assert [r for r in again if r["object"] == "rock"] == rows and sum(r["object"] == "carton" for r in again) == 2
     assert "| rock | 2 % | 2 (all) |" in (tmp_path / "summary.md").read_text()

@@ -1,20 +1,22 @@
-"""The best strict top-1 any method can reach on a grasp: the posterior of each placement.
+"""The best strict top-1 a ranking by fit can reach on a grasp: does the true placement fit best?
 
-On a nearly symmetric object another placement can fit the contacts as well as the true one,
-and then no method tells them apart more often than the likelihoods allow. With a uniform
-prior over placements, placement k of least surface χ²_k (costs.surface, research/surface.md)
-has posterior p_k = exp(-χ²_k / 2) / Σ_j exp(-χ²_j / 2) (the posterior widths taken alike),
-and the decision that picks the most probable placement is right with probability max_k p_k,
-more often than any other decision can be. Over grasps drawn as the benchmark draws them, the
-mean of max_k p_k estimates the highest share of strict top-1 successes any method can have:
-the *ceiling*. A share above it would be luck of the draw (research/ceiling.md).
+On a nearly symmetric object another placement can fit the contacts as well as the true one, or
+better. A method that ranks placements by their least surface χ² (costs.surface,
+research/surface.md) then names the true one only where it fits best. Per grasp the *ceiling*
+is 1 when the true placement's least χ² is below every wrong placement's, 1/m when it ties with
+m − 1 of them (their surfaces coincide: a fair choice among them), and 0 when a wrong one fits
+better. Its mean over grasps drawn as the benchmark draws them bounds the strict top-1 success
+of any ranking by this likelihood on those grasps; a likelihood that knew more of how the
+contacts arose could do better where surfaces differ (research/ceiling.md). The posteriors
+p_k ∝ exp(−χ²_k / 2) are given too.
 
 The placements are the true one (the surface fit from the true pose, each contact walking
 from its nearest facet, or where that fit leaves the true placement, the χ² at the true pose
-itself; joined by the search's poses that are strictly right) and the search's
-strictly wrong ones (rotation >= 5° or translation >= 5 % of the diameter modulo the object's
-symmetry), each fitted on the surface from its facets; wrong fits strictly right of one
-another are one placement. Placements the search never found are not counted.
+itself; joined by the search's poses that are strictly right) and the search's strictly wrong
+ones (rotation >= 5° or translation >= 5 % of the diameter modulo the object's symmetry), each
+fitted on the surface from its facets; wrong fits strictly right of one another are one
+placement. A wrong placement the search never found, or whose fit stops above its least χ²,
+is missed: the ceiling can only be lower.
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ from contactpose.solvers.surface import surface_fit
 
 #: The search's best distinct poses fitted on the surface (placement_fits).
 CHECKS = 32
-#: χ² within this of the true placement's count as fitting as well (wrong_fits_better).
+#: χ² within this of the true placement's count as fitting as well (ties, wrong_fits_better).
 TIE_CHI2 = 1e-6
 
 __all__ = ["CHECKS", "PlacementFits", "placement_fits", "posteriors"]
@@ -42,13 +44,15 @@ __all__ = ["CHECKS", "PlacementFits", "placement_fits", "posteriors"]
 class PlacementFits:
     """true_chi2 : the least surface χ² of the true placement; wrong_chi2 (W,) : of each
     strictly wrong placement found; best_right : whether the search's best pose is strictly
-    right; drifted : the surface fit from the true pose left the true placement (true_chi2 is
-    then the χ² at the true pose, or of a strictly right pose of the search).
-    posterior : (W + 1,) the true placement's first (:func:`posteriors`)."""
+    right; best_errors : its rotation (degrees) and translation error modulo the symmetry
+    (inf, inf without a hypothesis); drifted : the surface fit from the true pose left the
+    true placement (true_chi2 is then the χ² at the true pose, or of a strictly right pose of
+    the search). posterior : (W + 1,) the true placement's first (:func:`posteriors`)."""
 
     true_chi2: float
     wrong_chi2: np.ndarray
     best_right: bool
+    best_errors: tuple
     drifted: bool
 
     @property
@@ -56,9 +60,16 @@ class PlacementFits:
         return posteriors(np.concatenate([[self.true_chi2], self.wrong_chi2]))
 
     @property
+    def ties(self):
+        """How many wrong placements fit within TIE_CHI2 of the true one."""
+        return int(np.count_nonzero(np.abs(self.wrong_chi2 - self.true_chi2) <= TIE_CHI2))
+
+    @property
     def ceiling(self):
-        """Probability that the most probable placement is the true one (max_k p_k)."""
-        return float(self.posterior.max())
+        """1 if the true placement fits best, 1/(1 + ties) if it ties, 0 if a wrong one fits better."""
+        if np.any(self.wrong_chi2 < self.true_chi2 - TIE_CHI2):
+            return 0.0
+        return 1.0 / (1 + self.ties)
 
     @property
     def wrong_fits_better(self):
@@ -94,8 +105,10 @@ def placement_fits(model, contacts, true_pose, *, group=None, checks=CHECKS, **o
         else:
             wrong_poses.append(pose)
             wrong_chi2.append(chi2)
-    best_right = bool(len(arrays.cost)) and _right(group, arrays.poses[0], true_pose, D)
-    return PlacementFits(float(true_chi2), _one_per_placement(group, wrong_poses, wrong_chi2, D), best_right, drifted)
+    errors = tuple(float(e) for e in group.errors(arrays.poses[0], true_pose)) if len(arrays.cost) else (np.inf,) * 2
+    best_right = bool(errors[0] < SUCCESS_ROT_DEG and errors[1] < SUCCESS_TRANS_FRAC * D)
+    return PlacementFits(float(true_chi2), _one_per_placement(group, wrong_poses, wrong_chi2, D), best_right, errors,
+                         drifted)
 
 
 def _true_chi2(model, contacts, true_pose, tolerance, group):
