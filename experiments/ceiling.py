@@ -8,8 +8,9 @@ radius r, cone 30°, Gaussian noise 0.25 % of the diameter and 1°, localize tol
 the radius. Per grasp: whether our best pose is strictly right (rotation < 5° and translation
 < 5 % of the diameter, modulo the symmetry group), the true placement's least surface χ² and
 the best wrong one's, the true placement's posterior, the ceiling (1 if the true placement fits
-best, 1/m if it ties with m − 1 others, else 0), and the Cramér–Rao RMS rotation error of the grasp (the strict target
-of issue "a search whose work follows the shape" counts grasps where it is below 2°). Writes
+best, 1/m if it ties with m − 1 others, else 0), and the Cramér–Rao RMS rotation error of the
+grasp (the strict target of issue "a search whose work follows the shape" counts grasps where it
+is below 2°). Writes
 results/ceiling/grasps.csv and summary.md, keeping the rows of objects not in this run::
 
     .venv/bin/python experiments/ceiling.py                        # 4 objects x 2 radii x 50 grasps
@@ -35,8 +36,8 @@ from contactpose.uncertainty.bounds import rotation_bound_deg
 #: The strict target counts grasps whose Cramér–Rao RMS rotation error is below this (degrees).
 BOUND_DEG = 2.0
 FIELDS = ("object", "facets", "radius_frac", "grasp", "face_only", "bound_rot_deg", "best_right", "best_rot_deg",
-          "best_trans_frac", "true_chi2",
-          "wrong_chi2", "ties", "p_true", "ceiling", "wrong_fits_better", "drifted", "seconds")
+          "best_trans_frac", "true_chi2", "wrong_chi2", "ties", "p_true", "ceiling", "wrong_fits_better", "drifted",
+          "seconds")
 
 
 def run_object(name, grasps, radii):
@@ -62,7 +63,8 @@ def run_object(name, grasps, radii):
                              best_trans_frac=fits.best_errors[1] / D, true_chi2=fits.true_chi2,
                              wrong_chi2=float(fits.wrong_chi2.min()) if len(fits.wrong_chi2) else np.inf,
                              ties=fits.ties, p_true=float(fits.posterior[0]), ceiling=fits.ceiling,
-                             wrong_fits_better=fits.wrong_fits_better, drifted=fits.drifted, seconds=time.perf_counter() - start))
+                             wrong_fits_better=fits.wrong_fits_better, drifted=fits.drifted,
+                             seconds=time.perf_counter() - start))
     return rows
 
 
