@@ -24,7 +24,7 @@ import time
 import warnings
 
 import numpy as np
-from coarse_edges import OBJECTS, RADII, arguments, write
+from coarse_edges import OBJECTS, RADII, arguments, cells, write
 from regions_check import CONFIG, grasp
 from scipy.spatial import cKDTree
 
@@ -86,9 +86,7 @@ def summary(rows):
              "true placement's posterior, mean | a wrong placement fits as well | truth's fit drifted | "
              "ours: rotation error, median | Cramér–Rao RMS rotation, median |",
              "|---|---:|---|---:|---:|---:|---:|---:|---:|---:|"]
-    keys = list(dict.fromkeys((r["object"], r["radius_frac"]) for r in rows))
-    for name, frac in keys:
-        cell = [r for r in rows if r["object"] == name and r["radius_frac"] == frac]
+    for name, frac, cell in cells(rows):
         for split, sel in (("all", cell), (f"bound < {BOUND_DEG:g}°", [r for r in cell
                                                                        if r["bound_rot_deg"] < BOUND_DEG])):
             if sel:

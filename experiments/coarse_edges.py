@@ -72,10 +72,7 @@ def summary(rows):
     """Markdown lines: per object and radius, all grasps and the face-only / edge-vertex split."""
     lines = ["| object | facets | r | split | grasps | no hypothesis | any listed right | best right | "
              "best rotation error, median | online median / p95 |", "|---|---:|---:|---|---:|---:|---:|---:|---:|---:|"]
-    names = list(dict.fromkeys(r["object"] for r in rows))
-    keys = sorted({(r["object"], r["radius_frac"]) for r in rows}, key=lambda k: (names.index(k[0]), k[1]))
-    for name, frac in keys:
-        cell = [r for r in rows if r["object"] == name and r["radius_frac"] == frac]
+    for name, frac, cell in cells(rows):
         for split, sel in (("all", cell), ("face only", [r for r in cell if r["face_only"]]),
                            ("edge or vertex", [r for r in cell if not r["face_only"]])):
             if not sel:
@@ -87,6 +84,14 @@ def summary(rows):
                 f"{outcomes(sel)} | {np.median(rot[np.isfinite(rot)]) if np.isfinite(rot).any() else np.nan:.2f}° | "
                 f"{np.median(t):.0f} / {np.percentile(t, 95):.0f} ms |")
     return lines
+
+
+def cells(rows):
+    """The rows of each object and radius: [(object, radius_frac, rows)], the objects in the
+    order they first appear, the radii ascending."""
+    names = list(dict.fromkeys(r["object"] for r in rows))
+    keys = sorted({(r["object"], r["radius_frac"]) for r in rows}, key=lambda k: (names.index(k[0]), k[1]))
+    return [(name, frac, [r for r in rows if r["object"] == name and r["radius_frac"] == frac]) for name, frac in keys]
 
 
 def outcomes(sel):

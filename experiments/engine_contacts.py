@@ -26,7 +26,7 @@ from importlib.metadata import version
 from pathlib import Path
 
 import numpy as np
-from coarse_edges import RADII, arguments, outcomes, write
+from coarse_edges import RADII, arguments, cells, outcomes, write
 from regions_check import CONFIG
 
 from contactpose import Contacts, ObjectModel, localize
@@ -130,10 +130,9 @@ def summary(rows):
     lines = ["| object | r | contacts | grasps | engine vs simulator: point gap max (% D), normal angle max, "
              "medians | no hypothesis | any listed right | best right | online median / p95 |",
              "|---|---:|---|---:|---|---:|---:|---:|---:|"]
-    keys = list(dict.fromkeys((r["object"], r["radius_frac"]) for r in rows))
-    for name, frac in keys:
+    for name, frac, cell in cells(rows):
         for source in ("simulator", "engine"):
-            sel = [r for r in rows if r["object"] == name and r["radius_frac"] == frac and r["source"] == source]
+            sel = [r for r in cell if r["source"] == source]
             t = 1e3 * np.array([r["seconds"] for r in sel])
             lines.append(
                 f"| {name} | {100 * frac:g} % | {source} | {len(sel)} | "
