@@ -168,6 +168,11 @@ class Tolerance:
         return Tolerance(factor * self.distance, min(factor * self.angle, np.pi), self.position_noise,
                          self.normal_noise)
 
+    def normals_widened(self, factor):
+        """The same noise with the angle tolerance ``factor`` times wider, the distance's as it is
+        (the direction constraint and the handedness test follow the angle)."""
+        return Tolerance(self.distance, min(factor * self.angle, np.pi), self.position_noise, self.normal_noise)
+
     def direction(self, distance):
         """σ_h for finger pairs Δ̃ apart (scalar or array): σ_Δ + (Δ̃ + σ_Δ)·σ_α.
 

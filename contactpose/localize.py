@@ -61,7 +61,8 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
     re-enters the posed object: contactpose.scoring.freespace); underdetermined hypotheses are
     kept, since their pose is one arbitrary member of a family; on a facet table, a poor fit
     of rounded fingertips is searched again over the facets, sharp edges and vertices
-    (stages.edge_hypotheses; an empty answer always is). time_limit : seconds for the
+    (stages.edge_hypotheses; an empty answer always is), on a model of surface regions with
+    the normal gates widened (stages.with_widened_normals). time_limit : seconds for the
     search (None: unbounded); when it runs out, the hypotheses found so far are returned with
     status "time_limit". progress : tqdm bars (None: on a terminal, for work over a second).
     distinct : list one hypothesis per distinct pose, the best of its near-copies (assignments
@@ -132,6 +133,11 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
             with _clock(timing, "pose"):
                 arrays = stages.surface_hypotheses(model, contacts, arrays, tolerance, deadline,
                                                    merge_twins=merge_twins, every=every, multistart=True)
+                arrays, note = stages.with_widened_normals(model, contacts, arrays, tolerance, timing,
+                                                           finger_radius=finger_radius, prior=prior,
+                                                           deadline=deadline, progress=progress,
+                                                           merge_twins=merge_twins)
+                notes += (note,)
     if solver == "factor-graph":
         with _clock(timing, "refine"):
             arrays, rescue = stages.refine_hypotheses(model, contacts, arrays, tolerance, prior=prior, robust=robust,

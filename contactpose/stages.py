@@ -29,6 +29,7 @@ from contactpose.progress import Deadline
 from contactpose.scoring import evidence, refine
 from contactpose.scoring import rank as ranking
 from contactpose.scoring.classes import MAX_CLASS_HYPOTHESES, distinct_poses, distinct_radius, pose_classes
+from contactpose.scoring.freespace import drop_blocked
 from contactpose.scoring.infacet import within_noise
 from contactpose.scoring.status import status as status_of
 from contactpose.search.grow import grow_tree, triple_test, warn_explosion
@@ -47,6 +48,13 @@ EDGES_NOTE = ("no facet tuple fit the contacts' normals within noise: searched a
 EDGES_MIN_SPREAD = 2.0
 #: Hypotheses of that search posed on the surface contact model (solvers.surface.surface_poses).
 EDGE_REFINE = 16
+#: On a model of surface regions, a poor fit of rounded fingertips has the regions searched
+#: again with the angle gates this many times wider (with_widened_normals).
+NORMAL_WIDEN = 2.0
+#: The note of an answer that search joined.
+NORMALS_NOTE = (f"no region tuple fit the contacts within noise: searched again with the normal gates {NORMAL_WIDEN:g}x "
+                "wider (a rounded fingertip on a vertex or edge of the mesh has a normal between its faces'), the "
+                "best poses fitted on the surface contact model")
 #: Share of the time left that the tree may take; the poses and ranking get the rest.
 TREE_SHARE = 0.25
 #: Seconds the distinct-pose grouping may always take, even once the time limit has passed;
@@ -65,7 +73,7 @@ SEARCH_STAGES = ("pairs", "tree", "pose", "rank")
 
 __all__ = ["POOR_FIT_LISTED", "SEARCH_STAGES", "classify", "distinct", "find_hypotheses",
            "join_hypotheses", "listed", "listed_rows", "polish_hypotheses", "pose_hypotheses", "rank_hypotheses",
-           "refine_hypotheses", "search", "surface_hypotheses", "edge_hypotheses"]
+           "refine_hypotheses", "search", "surface_hypotheses", "edge_hypotheses", "with_widened_normals"]
 
 
 # ------------------------------------------------------------------ search ---
@@ -115,6 +123,38 @@ def find_hypotheses(model, contacts, tolerance, *, solver="closed-form", prior=N
             arrays = _first_of_each_tuple(arrays)
             widened = EDGES_NOTE
     return arrays, timing, grown, widened
+
+
+def with_widened_normals(model, contacts, arrays, tolerance, timing, *, finger_radius, prior=None, deadline=None,
+                        progress=None, merge_twins=False):
+    """The ranked surface poses of a model of surface regions, joined, when none fits within
+    noise and rounded fingertips are stated (``finger_radius`` > 0), by those of a search with
+    the angle gates NORMAL_WIDEN times wider that do. A fingertip resting on a vertex or edge
+    of a rough scan has a normal anywhere between its faces' normals, farther than the gate
+    from every region's (research/surface.md, "A fingertip on a vertex of a rough scan"). The
+    new hypotheses keep the free-space test, are ranked at the stated noise and fitted on the
+    surface contact model as the first search's are (:func:`surface_hypotheses`); the search's
+    seconds are added to ``timing``. -> (HypothesisArrays ranked, one per distinct pose; the
+    note NORMALS_NOTE, or "" when nothing joined)"""
+    deadline = deadline or Deadline()
+    if (not finger_radius or not model.has_regions or deadline.passed
+            or np.any(arrays.chi2 <= fit_threshold(contacts.n))):
+        return arrays, ""
+    found, more, _ = search(model, contacts, tolerance.normals_widened(NORMAL_WIDEN), prior=prior, deadline=deadline,
+                            progress=progress)
+    for k in more:
+        timing[k] += more[k]
+    start = time.perf_counter()
+    found = drop_blocked(model, contacts, found, finger_radius)
+    found = ranking.hypothesis_arrays(model, contacts, found.facets, found.fit, tolerance)
+    found = surface_hypotheses(model, contacts, distinct(model, found, tolerance, deadline), tolerance, deadline,
+                               merge_twins=merge_twins, multistart=True)
+    fitting = np.flatnonzero(found.chi2 <= fit_threshold(contacts.n))
+    if len(fitting):
+        arrays = distinct(model, _first_of_each_tuple(arrays.merged(found.take(fitting))), tolerance, deadline,
+                          merge_twins)
+    timing["pose"] += time.perf_counter() - start
+    return arrays, NORMALS_NOTE if len(fitting) else ""
 
 
 def _edges_may_help(model, contacts, tolerance, arrays, deadline, finger_radius=None):
