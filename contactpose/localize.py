@@ -59,7 +59,7 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
     seed makes the sampling repeatable. finger_radius : drop the hypotheses that put a
     contact where no finger of this radius fits (its outward normal ray of that length
     re-enters the posed object: contactpose.scoring.freespace); underdetermined hypotheses are
-    kept, since their pose is one arbitrary member of a family; on a facet table, a poor fit
+    kept, since their pose is one arbitrary member of a family; on a facet table (no regions), a poor fit
     of rounded fingertips is searched again over the facets, sharp edges and vertices
     (stages.edge_hypotheses; an empty answer always is), on a model of surface regions with
     the normal gates widened (stages.with_widened_normals). time_limit : seconds for the

@@ -159,13 +159,16 @@ def with_widened_normals(model, contacts, arrays, tolerance, timing, *, finger_r
 
 def _edges_may_help(model, contacts, tolerance, arrays, deadline, finger_radius=None):
     """Whether the search over facets, sharp edges and vertices should run (find_hypotheses):
-    a model with a facet table, time left, no hypothesis that fits within noise, contacts
+    a model with a facet table that is not searched over surface regions (a fine mesh, whose
+    edges and vertices would make a unit table of GiBs: its regions widen their normal gates
+    instead, :func:`with_widened_normals`), time left, no hypothesis that fits within noise, contacts
     spread wider than EDGES_MIN_SPREAD pair distance gates (closer ones fit any vertex whose
     cone holds their normals), and either no hypothesis at all or rounded fingertips stated
     (``finger_radius`` > 0: a point contact lands on an edge almost never, a rounded one
     often). Without a stated radius a poor fit keeps its diagnosis: cones wide enough for an
     edge also absorb a normal noise stated too small."""
-    if model.table is None or deadline.passed or contacts.spread <= EDGES_MIN_SPREAD * tolerance.distance:
+    if (model.table is None or model.has_regions or deadline.passed
+            or contacts.spread <= EDGES_MIN_SPREAD * tolerance.distance):
         return False
     if np.any(arrays.chi2 <= fit_threshold(contacts.n)):
         return False

@@ -11,10 +11,12 @@ import numpy as np
 import pytest
 import trimesh
 
-from contactpose import Contacts, ObjectModel, localize
+from contactpose import Contacts, ObjectModel, localize, stages
 from contactpose.contacts import Tolerance
 from contactpose.model.symmetry import symmetry
+from contactpose.progress import Deadline
 from contactpose.sim import grasps as simulate
+from contactpose.sim import objects
 from contactpose.stages import NORMAL_WIDEN, NORMALS_NOTE
 
 NOISE_FRAC = 0.0025
@@ -89,3 +91,17 @@ def test_a_crease_contact_is_found_by_the_widened_search(panels):
         assert rotation < 1e-3 and translation < 1e-6 * D and tips.best.chi2 < 1e-6
         assert group.errors(stated.best.pose, pose)[0] > 5.0  # what the stated gates gave instead
     assert lost >= 1  # the stated gates lose the truth on some of these grasps
+
+
+def test_a_region_model_with_a_facet_table_widens_its_normals_instead_of_searching_edges():
+    """The search over edges and vertices builds a unit table of about twice the facets (GiBs
+    on a fine mesh, mid-search): a model searched over regions takes the widened normal gates
+    instead, a facet model the edges."""
+    mesh = objects.load("rock1k")
+    regions, facets = ObjectModel.from_mesh(mesh, patch_tol_deg=5.0), ObjectModel.from_mesh(mesh)
+    assert regions.has_regions and regions.table is not None and not facets.has_regions
+    grasp = simulate.grasp(facets, np.random.default_rng(3), n=4)
+    tolerance = Tolerance.from_noise(NOISE_FRAC * facets.diameter, 1.0)
+    nothing = stages.search(facets, grasp.contacts, tolerance)[0].take(np.arange(0))
+    assert stages._edges_may_help(facets, grasp.contacts, tolerance, nothing, Deadline(), 0.01)
+    assert not stages._edges_may_help(regions, grasp.contacts, tolerance, nothing, Deadline(), 0.01)
