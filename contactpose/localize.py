@@ -133,11 +133,10 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
             with _clock(timing, "pose"):
                 arrays = stages.surface_hypotheses(model, contacts, arrays, tolerance, deadline,
                                                    merge_twins=merge_twins, every=every, multistart=True)
-                arrays, note = stages.with_widened_normals(model, contacts, arrays, tolerance, timing,
-                                                           finger_radius=finger_radius, prior=prior,
-                                                           deadline=deadline, progress=progress,
-                                                           merge_twins=merge_twins)
-                notes += (note,)
+            arrays, note = stages.with_widened_normals(model, contacts, arrays, tolerance, timing,  # its own clock
+                                                       finger_radius=finger_radius, prior=prior, deadline=deadline,
+                                                       progress=progress, merge_twins=merge_twins)
+            notes += (note,)
     if solver == "factor-graph":
         with _clock(timing, "refine"):
             arrays, rescue = stages.refine_hypotheses(model, contacts, arrays, tolerance, prior=prior, robust=robust,
