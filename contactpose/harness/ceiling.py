@@ -106,7 +106,7 @@ def placement_fits(model, contacts, true_pose, *, group=None, checks=CHECKS, **o
             wrong_poses.append(pose)
             wrong_chi2.append(chi2)
     errors = tuple(float(e) for e in group.errors(arrays.poses[0], true_pose)) if len(arrays.cost) else (np.inf,) * 2
-    best_right = bool(errors[0] < SUCCESS_ROT_DEG and errors[1] < SUCCESS_TRANS_FRAC * D)
+    best_right = _strict(errors, D)
     return PlacementFits(float(true_chi2), _one_per_placement(group, wrong_poses, wrong_chi2, D), best_right, errors,
                          drifted)
 
@@ -125,8 +125,12 @@ def _true_chi2(model, contacts, true_pose, tolerance, group):
 
 
 def _right(group, pose, true_pose, diameter):
-    rot, trans = group.errors(pose, true_pose)
-    return bool(rot < SUCCESS_ROT_DEG and trans < SUCCESS_TRANS_FRAC * diameter)
+    return _strict(group.errors(pose, true_pose), diameter)
+
+
+def _strict(errors, diameter):
+    """Whether (rotation degrees, translation) are strictly right."""
+    return bool(errors[0] < SUCCESS_ROT_DEG and errors[1] < SUCCESS_TRANS_FRAC * diameter)
 
 
 def _one_per_placement(group, poses, chi2, diameter):
