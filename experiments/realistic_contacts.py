@@ -16,23 +16,31 @@ has the same pose and the same aims at every radius.
 Methods on the same grasps: ``fast`` (the default method) on every grasp; ``paper``
 (``method="paper"``, LM from the identity) on the first ``paper_grasps`` grasps per object and
 radius, counted as run only when it finishes within ``paper_time_limit`` seconds (its status is
-not ``time_limit``), or "not run" when the model has no facet table; ``icp-multistart`` (32
+not ``time_limit``); where the object's model has no facet table, the paper's own workflow: the
+mesh decimated to about ``paper_facets`` facets (``objects.decimate``, the paper's banana went
+from 512 to 53), its facet table built, the contacts searched there and the pose scored
+against the full mesh's truth (``paper_model_facets`` says on how many facets); ``icp-multistart`` (32
 random starts) and ``scaling-series`` (2000 particles) from contactpose/peers/ with their
 default budgets and ICP's default pad radius and correspondence distance (not tuned per object
 as experiments/baselines.py does), on the first ``baseline_grasps`` grasps.
 
 Per grasp and method: found (some returned hypothesis places the surface within ADD-S
 ``found_adds_frac`` = 5 % of the diameter; exact over all hypotheses, see :func:`any_within`),
-top-1 by ADD-S (< ``top1_adds_frac`` = 10 %) and strict (``metrics.pose_success``: rotation < 5°,
-translation < 5 % of the diameter), the best pose's rotation and translation errors and ADD-S
-(mm), status, hypothesis count, online time (``result.timing["total"]``; wall time for the
-baselines). For ``fast`` also where the true assignment is lost (``truth_stage``, the first that
-applies): ``table`` (some finger pair's true facet pair is not in S_ij), ``tree`` (every pair is
-there, no distinct pose holds the tuple: not joined, or on a model of regions also grouped
-under a near-copy; experiments/truth_stages.py tells them apart), ``fit`` (the tuple is found
-but no pose near its closed form fits within noise), ``ranking`` (it fits, another tuple is first) or ``first`` (it is ranked first). The
-true facet of a contact is the triangle it touched, or on an edge or a vertex any triangle
-incident to it (``pairs_present_touched`` counts the pairs with the touched triangles only).
+top-1 by ADD-S (< ``top1_adds_frac`` = 10 %) and strict (``metrics.pose_success``:
+rotation < 5°, translation < 5 % of the diameter), the best pose's rotation and translation errors and
+ADD-S (mm), its MSSD (``mssd_mm``: the BOP challenge's maximum symmetry-aware surface distance
+over the mesh's vertices, the symmetries ``model.symmetry`` finds in the mesh), status,
+hypothesis count, online time (``result.timing["total"]``; wall time for the baselines). The
+summary gives each method's AR_MSSD: the recall of the MSSD averaged over thresholds of
+5 %, 10 %, ..., 50 % of the diameter (a grasp without a pose counts as a miss). For ``fast`` also where
+the true assignment is lost (``truth_stage``, the first that applies): ``table`` (some finger
+pair's true facet pair is not in S_ij), ``tree`` (every pair is there, no distinct pose holds
+the tuple: not joined, or on a model of regions also grouped under a near-copy;
+experiments/truth_stages.py tells them apart), ``fit`` (the tuple is found but no pose near its
+closed form fits within noise), ``ranking`` (it fits, another tuple is first) or ``first`` (it
+is ranked first). The true facet of a contact is the triangle it touched, or on an edge or a
+vertex any triangle incident to it (``pairs_present_touched`` counts the pairs with the touched
+triangles only).
 
 Models: each object's model is built once, in a child process that records its build time and
 peak RSS, and kept as .npz (with the baselines' surface samples) under ``model_cache``
@@ -78,6 +86,7 @@ from contactpose.io.modelfile import FORMAT_VERSION
 from contactpose.localize import localize
 from contactpose.localize import warm_up as warm_localize
 from contactpose.model.object_model import ObjectModel, merged_mesh
+from contactpose.model.symmetry import symmetry
 from contactpose.model.table import estimate_bytes
 from contactpose.options import STATUSES, fit_threshold
 from contactpose.scoring.infacet import within_noise
@@ -178,7 +187,8 @@ def current(path):
 @dataclass
 class Setup:
     """What a worker holds per object: model, vertex-merged mesh, baselines' surface and ICP
-    target, and the 12-D embedding of poses for ADD bounds (:func:`embed`)."""
+    target, the 12-D embedding of poses for ADD bounds (:func:`embed`), the mesh's vertices on
+    its convex hull and its symmetry group (for the MSSD)."""
 
     model: ObjectModel
     vertices: np.ndarray
@@ -187,6 +197,8 @@ class Setup:
     target: object
     moments: tuple
     labels: np.ndarray
+    hull: np.ndarray
+    group: object
 
 
 def setup(name, cache, cfg):
@@ -204,8 +216,18 @@ def setup(name, cache, cfg):
         labels = model.patches.labels if model.patch_table is not None else np.arange(model.num_facets)
         warm_up()
         return Setup(model, vertices, faces, surface, bl.icp_target(surface, cfg["icp_target_points"]),
-                     (p.mean(axis=0), p.T @ p / len(p)), labels)
+                     (p.mean(axis=0), p.T @ p / len(p)), labels, metrics.hull_points(vertices), symmetry(model))
     return sweep.cached((NAME, name, str(cache)), load)
+
+
+def paper_model(name, cache, cfg):
+    """The paper's workflow where the full mesh has no facet table: the mesh decimated to about
+    ``paper_facets`` facets, in its own frame, and built with the facet table (one per worker)."""
+    def load():
+        model = setup(name, cache, cfg).model
+        small = objects.decimate(merged_mesh(model.vertices, model.faces), cfg["paper_facets"])
+        return ObjectModel.from_mesh(small, facet_pairs=True)
+    return sweep.cached((NAME, "paper", name, str(cache), cfg["paper_facets"]), load)
 
 
 def warm_up():
@@ -335,24 +357,26 @@ def score(s, poses, truth, cfg, max_anchors=1):
     D = s.model.diameter
     if len(poses) == 0:
         return {"found": False, "found_exact": True, "anchors": 0, "top1_adds": False, "top1_strict": False,
-                "rot_err_deg": None, "trans_err_mm": None, "adds_mm": None}
+                "rot_err_deg": None, "trans_err_mm": None, "adds_mm": None, "mssd_mm": None}
     found, anchors, exact = any_within(s, poses, truth, cfg["found_adds_frac"] * D, max_anchors)
     best = poses[0]
     a = adds(s, best, truth)
     return {"found": found, "found_exact": exact, "anchors": anchors, "top1_adds": bool(a < cfg["top1_adds_frac"] * D),
             "top1_strict": bool(metrics.pose_success(best, truth, D)),
             "rot_err_deg": float(metrics.rotation_error_deg(best, truth)),
-            "trans_err_mm": 1e3 * float(metrics.translation_error(best, truth)), "adds_mm": 1e3 * a}
+            "trans_err_mm": 1e3 * float(metrics.translation_error(best, truth)), "adds_mm": 1e3 * a,
+            "mssd_mm": 1e3 * s.group.mssd(best, truth, s.hull)}
 
 
-def ours(s, contacts, truth, noise, cfg, **options):
-    """localize, scored on the hypotheses the default listing returns (keep="fitting",
-    localize.listed_rows); the result keeps every distinct pose, for truth_columns. Warnings
-    (the explosion estimate) are recorded, not printed."""
+def ours(s, contacts, truth, noise, cfg, model=None, **options):
+    """localize (on ``model``, default the object's), scored on the hypotheses the default
+    listing returns (keep="fitting", localize.listed_rows); the result keeps every distinct
+    pose, for truth_columns. Warnings (the explosion estimate) are recorded, not printed."""
     start = time.perf_counter()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        r = localize(s.model, contacts, **noise, **options, keep="all", diagnose=False)  # wall: the search alone
+        r = localize(s.model if model is None else model, contacts, **noise, **options, keep="all",
+                     diagnose=False)  # wall: the search alone
     wall = time.perf_counter() - start
     poses = r.hypotheses.arrays.poses
     if r.method == "fast" and r.status != "time_limit":
@@ -399,17 +423,12 @@ def task(settings, rng, *, cfg, cache):
     rows.append({"method": "fast", **grasp, **row})
     # the paper's method, within its time cap
     if seed < cfg["paper_grasps"]:
-        if model.table is None:
-            v = int(model.planes.valid.sum())
-            note = (f"not run: needs the facet table of {model.num_facets:,} facets "
-                    f"({estimate_bytes(v * (v + 1) // 2) / GiB:.1f} GiB)")
-            rows.append({"method": "paper", **grasp, "ran": False, "note": note})
-        else:
-            r, row = ours(s, contacts, pose, noise, cfg, method="paper", time_limit=cfg["paper_time_limit"])
-            if r.status == "time_limit":
-                row = {"ran": False, "note": f"not finished within {cfg['paper_time_limit']:g} s",
-                       "status": r.status, "num_hypotheses": r.num_hypotheses, "time_wall_ms": row["time_wall_ms"]}
-            rows.append({"method": "paper", **grasp, **row})
+        small = model if model.table is not None else paper_model(name, cache, cfg)
+        r, row = ours(s, contacts, pose, noise, cfg, model=small, method="paper", time_limit=cfg["paper_time_limit"])
+        if r.status == "time_limit":
+            row = {"ran": False, "note": f"not finished within {cfg['paper_time_limit']:g} s",
+                   "status": r.status, "num_hypotheses": r.num_hypotheses, "time_wall_ms": row["time_wall_ms"]}
+        rows.append({"method": "paper", **grasp, **row, "paper_model_facets": small.num_facets})
     # the baselines, default budgets
     if seed < cfg["baseline_grasps"]:
         for method, run in (("icp-multistart", lambda: bl.icp_multistart(model, s.surface, s.target, contacts, rng,
@@ -504,6 +523,8 @@ def summary_row(c, sel, obj, frac, method, split):
            "top1_strict": share("top1_strict")}
     for col in ("rot_err_deg", "trans_err_mm", "adds_mm"):
         row[f"{col}_median"], row[f"{col}_p90"] = pct(c[col][ran], 50), pct(c[col][ran], 90)
+    mssd = c.get("mssd_mm")  # runs before it had no MSSD
+    row["ar_mssd"] = metrics.ar_mssd(mssd[ran], float(c["diameter_mm"][sel][0])) if k and mssd is not None else np.nan
     for st in STATUSES:
         row[f"status_{st}"] = int(np.sum(c["status"][ran] == st)) if method in ("fast", "paper") else ""
     row["no_hypothesis"] = float(np.mean(c["num_hypotheses"][ran] == 0)) if k and method in ("fast", "paper") else np.nan
@@ -538,11 +559,13 @@ def summary_markdown(rows, models, cfg_text):
              "Default method (`fast`). found: some hypothesis within ADD-S 5 % of the diameter; top-1 ADD-S: the best "
              "within 10 %; strict: rotation < 5° and translation < 5 % of the diameter. Errors of the best pose "
              "(median / p90; for symmetric objects the ADD-S in mm is the fair one). no-hyp: no hypothesis. "
-             "face / e-v: top-1 ADD-S of the face-only grasps and of those with an edge or vertex contact (grasps).", "",
-             "| object | sym. | r (% diam.) | grasps | found % | top-1 ADD-S % | top-1 strict % | rot med / p90 (°) | "
+             "face / e-v: top-1 ADD-S of the face-only grasps and of those with an edge or vertex contact (grasps). "
+             "AR_MSSD: the best pose's MSSD recall averaged over thresholds of 5-50 % of the diameter (BOP).", "",
+             "| object | sym. | r (% diam.) | grasps | found % | top-1 ADD-S % | top-1 strict % | AR_MSSD % | "
+             "rot med / p90 (°) | "
              "trans med / p90 (mm) | ADD-S med / p90 (mm) | no-hyp % | hyp. found / listed (median) | online med / p95 (ms) | "
              "face (n) / e-v (n) top-1 % |",
-             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
     for obj in objs:
         for frac in fracs:
             r = by.get((obj, frac, "fast", "all"))
@@ -552,6 +575,7 @@ def summary_markdown(rows, models, cfg_text):
             lines.append(
                 f"| {short(obj)} | {r['symmetry'] if r['symmetry'] != 'none' else ''} | {100 * frac:g} | {r['grasps']} | "
                 f"{fmt(r['found'], '.0f', 100)} | {fmt(r['top1_adds'], '.0f', 100)} | {fmt(r['top1_strict'], '.0f', 100)} | "
+                f"{fmt(r.get('ar_mssd', ''), '.0f', 100)} | "
                 f"{fmt(r['rot_err_deg_median'], '.1f')} / {fmt(r['rot_err_deg_p90'], '.0f')} | "
                 f"{fmt(r['trans_err_mm_median'], '.1f')} / {fmt(r['trans_err_mm_p90'], '.0f')} | "
                 f"{fmt(r['adds_mm_median'], '.1f')} / {fmt(r['adds_mm_p90'], '.0f')} | "
@@ -588,14 +612,16 @@ def summary_markdown(rows, models, cfg_text):
               "Baselines and the paper's method run on the first grasps of each object and radius (config "
               "`baseline_grasps`, `paper_grasps`); `ran` counts the grasps where a method gave an answer "
               "(the paper's: finished within its time cap).", "",
-              "| r (% diam.) | method | ran / grasps | found % | top-1 ADD-S % | top-1 strict % | rot med (°) | "
-              "trans med (mm) | online med / p95 (ms) | note |", "|---:|---|---:|---:|---:|---:|---:|---:|---:|---|"]
+              "| r (% diam.) | method | ran / grasps | found % | top-1 ADD-S % | top-1 strict % | AR_MSSD % | "
+              "rot med (°) | trans med (mm) | online med / p95 (ms) | note |",
+              "|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
     for frac in fracs:
         for method in METHODS:
             tot = pooled(rows, frac, method)["all"]
             if tot["n"]:
                 lines.append(f"| {100 * frac:g} | {method} | {tot['ran']} / {tot['n']} | {fmt(tot['found'], '.0f', 100)} | "
                              f"{fmt(tot['top1_adds'], '.0f', 100)} | {fmt(tot['top1_strict'], '.0f', 100)} | "
+                             f"{fmt(tot['ar_mssd'], '.0f', 100)} | "
                              f"{fmt(tot['rot'], '.1f')} | {fmt(tot['trans'], '.1f')} | {fmt(tot['ms'], '.0f')} / "
                              f"{fmt(tot['ms95'], '.0f')} | {tot['note']} |")
     lines += ["", "## Models (built once per object)", "",
@@ -618,7 +644,7 @@ def pooled(rows, frac, method):
         mean = (lambda col: sum(float(r[col]) * int(r["ran"]) for r in sel if int(r["ran"])) / k if k else np.nan)
         med = (lambda col: float(np.nanmedian([float(r[col]) for r in sel if int(r["ran"])])) if k else np.nan)
         out[split] = {"n": n, "ran": k, "found": mean("found"), "top1_adds": mean("top1_adds"),
-                      "top1_strict": mean("top1_strict"), "rot": med("rot_err_deg_median"),
+                      "top1_strict": mean("top1_strict"), "ar_mssd": mean("ar_mssd"), "rot": med("rot_err_deg_median"),
                       "trans": med("trans_err_mm_median"), "ms": med("online_ms_median"), "ms95": med("online_ms_p95"),
                       "note": "" if k == n else f"{n - k} not run or not finished"}
     sel = [r for r in rows if float(r["radius_frac"]) == frac and r["method"] == method and r["split"] == "all"]

@@ -1,6 +1,7 @@
 """``contactpose bench``: files only where --out / --json say, and one list of default models."""
 
 import csv
+import datetime
 import json
 import re
 from pathlib import Path
@@ -40,6 +41,9 @@ def test_out_writes_json_csv_and_stage_figure(bench_out):
         stats = report["models"][0][method]
         assert float(r["total_median_ms"]) == pytest.approx(stats["total"]["median_ms"], abs=1e-4)  # CSV: 4 decimals
         assert all(float(r[f"{stage}_ms"]) >= 0 for stage, _ in bench.TABLE_STAGES)
+        assert r["date"] == report["date"] and str(report["machine"]["cores"]) in r["machine"]
+    when = datetime.datetime.strptime(report["date"], "%Y-%m-%dT%H:%M:%SZ").replace(tzinfo=datetime.timezone.utc)
+    assert abs((datetime.datetime.now(datetime.timezone.utc) - when).total_seconds()) < 3600  # this run's date
     image = matplotlib.image.imread(bench_out / "bench_stages.png")
     assert image.ndim == 3 and image.shape[0] > 200 and image.shape[1] > 200
 

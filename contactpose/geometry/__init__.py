@@ -17,9 +17,12 @@ from contactpose.geometry.kernels import (
     triangle_triangle_dist2,
 )
 from contactpose.geometry.metrics import (
+    MSSD_THRESHOLDS_FRAC,
     SAME_CLASS_ADDS_FRAC,
     adds,
     adds_many,
+    ar_mssd,
+    mssd,
     pose_success,
     rms_displacement,
     rotation_error_deg,
@@ -28,8 +31,9 @@ from contactpose.geometry.metrics import (
 )
 from contactpose.geometry.raycast import Raycaster, raycaster
 
-__all__ = ["SAME_CLASS_ADDS_FRAC", "Raycaster", "adds", "adds_many", "closest_point_triangle",
-           "closest_points_on_triangles", "point_triangle_dist2", "point_triangle_distance", "pose_success",
+__all__ = ["MSSD_THRESHOLDS_FRAC", "SAME_CLASS_ADDS_FRAC", "Raycaster", "adds", "adds_many", "ar_mssd",
+           "closest_point_triangle",
+           "closest_points_on_triangles", "mssd", "point_triangle_dist2", "point_triangle_distance", "pose_success",
            "raycaster", "rms_displacement", "rotation_error_deg", "segment_segment_dist2",
            "segment_triangle_intersect", "symmetric_errors", "translation_error", "triangle_pair_bounds", "triangle_pair_vertex_bounds",
            "triangle_triangle_dist2"]

@@ -1,8 +1,11 @@
-"""Pose error metrics: rotation and translation error, raw and modulo a symmetry group, ADD-S, top-1 success."""
+"""Pose error metrics: rotation and translation error, raw and modulo a symmetry group, ADD-S,
+the benchmark's MSSD and its average recall, top-1 success."""
 
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial import ConvexHull, QhullError
+from scipy.spatial.distance import pdist
 from scipy.spatial.transform import Rotation
 
 from contactpose.geometry.se3 import hat
@@ -13,6 +16,12 @@ SUCCESS_ROT_DEG = 5.0
 SUCCESS_TRANS_FRAC = 0.05
 #: Poses whose ADD-S is below this fraction of the diameter place the surface the same way.
 SAME_CLASS_ADDS_FRAC = 0.05
+#: The MSSD thresholds whose recalls AR_MSSD averages: 5 %, 10 %, ..., 50 % of the diameter
+#: (the BOP challenge's protocol).
+MSSD_THRESHOLDS_FRAC = tuple(round(0.05 * k, 2) for k in range(1, 11))
+#: A continuous symmetry enters the MSSD as turns so close that the point farthest from the
+#: axis moves at most this fraction of the diameter from one to the next (as in BOP).
+MSSD_TURN_FRAC = 0.01
 
 
 def rotation_error_deg(T_est, T_true):
@@ -68,6 +77,76 @@ def nearest_twins(T_ref, T, rotations, axes=(), centre=None):
         candidates = candidates @ _about(turn, centre)
     best = np.argmin(rotation_error_deg(T_ref[..., None, :, :], candidates), axis=-1)
     return np.take_along_axis(candidates, best[..., None, None, None], axis=-3)[..., 0, :, :]
+
+
+def mssd(T_est, T_true, points, rotations, axes=(), centre=None):
+    """Maximum symmetry-aware surface distance (the BOP challenge's MSSD) of each estimate:
+    min over the symmetries S of max over the points x of |T_est x - T_true S x|.
+
+    T_est : (K, 4, 4) or (4, 4); T_true : (4, 4); points : (N, 3) object-frame model vertices;
+    rotations, axes, centre : the symmetry group, as for :func:`nearest_twins` (a continuous
+    axis sampled at MSSD_TURN_FRAC of the diameter; every rotation, a sphere: the centre's
+    displacement, exactly). -> (K,) or a float, in length units. The max over the points is
+    taken over their convex hull's vertices, where a convex function of x attains it.
+    """
+    T_est = np.asarray(T_est, dtype=np.float64)
+    single = T_est.ndim == 2
+    T_est, T_true = T_est.reshape(-1, 4, 4), np.asarray(T_true, dtype=np.float64)
+    axes = np.asarray(axes, dtype=np.float64).reshape(-1, 3)
+    centre = np.zeros(3) if centre is None else np.asarray(centre, dtype=np.float64)
+    if len(axes) >= 2:
+        moved = T_est[:, :3, :3] @ centre + T_est[:, :3, 3] - (T_true[:3, :3] @ centre + T_true[:3, 3])
+        out = np.linalg.norm(moved, axis=1)
+        return float(out[0]) if single else out
+    hull = hull_points(points)
+    S = symmetry_transforms(hull, rotations, axes, centre)
+    TS = T_true @ S  # (M, 4, 4)
+    out = np.empty(len(T_est))
+    for k, T in enumerate(T_est):
+        A = T[:3, :3] - TS[:, :3, :3]  # (M, 3, 3)
+        b = T[:3, 3] - TS[:, :3, 3]
+        gap = np.einsum("mij,nj->mni", A, hull) + b[:, None, :]
+        out[k] = np.sqrt(np.einsum("mni,mni->mn", gap, gap).max(axis=1).min())
+    return float(out[0]) if single else out
+
+
+def hull_points(points):
+    """The points (N, 3) on their convex hull (all of them when they span no volume)."""
+    points = np.asarray(points, dtype=np.float64)
+    try:
+        return points[ConvexHull(points).vertices]
+    except (QhullError, ValueError):
+        return points
+
+
+def symmetry_transforms(points, rotations, axes=(), centre=None):
+    """The symmetries an MSSD minimises over, (M, 4, 4): the group's rotations, each followed
+    by turns about a continuous axis (through ``centre``) spaced so that no point of
+    ``points`` (N, 3) moves more than MSSD_TURN_FRAC of their diameter between two."""
+    rotations = np.asarray(rotations, dtype=np.float64)
+    axes = np.asarray(axes, dtype=np.float64).reshape(-1, 3)
+    if len(axes) == 0:
+        return rotations
+    centre = np.zeros(3) if centre is None else np.asarray(centre, dtype=np.float64)
+    a = axes[0]
+    offset = points - centre
+    radius = np.linalg.norm(offset - np.outer(offset @ a, a), axis=1).max()
+    chord = MSSD_TURN_FRAC * (pdist(points).max() if len(points) > 1 else 0.0)
+    steps = 1 if radius <= chord / 2 else int(np.ceil(2 * np.pi / (2 * np.arcsin(chord / (2 * radius)))))
+    phis = 2 * np.pi * np.arange(steps) / steps
+    turns = _about(Rotation.from_rotvec(phis[:, None] * a).as_matrix(), centre)
+    return (rotations[:, None] @ turns[None]).reshape(-1, 4, 4)
+
+
+def ar_mssd(errors, diameter, thresholds=MSSD_THRESHOLDS_FRAC):
+    """Average recall of MSSD errors (K,) over thresholds (fractions of ``diameter``): the
+    mean over thresholds θ of the share of errors below θ · diameter. A missing error (NaN:
+    no pose) counts as a miss at every threshold."""
+    errors = np.asarray(errors, dtype=np.float64)
+    if errors.size == 0:
+        return float("nan")
+    below = np.nan_to_num(errors, nan=np.inf)[:, None] < np.asarray(thresholds)[None] * diameter
+    return float(below.mean())
 
 
 def _about(Q, centre):

@@ -183,7 +183,8 @@ def table_rows(results):
 
 
 CSV_COLUMNS = ("model", "facets", "build_ms", "peak_rss_mib", "method", *(f"{k}_ms" for k, _ in TABLE_STAGES),
-               "total_median_ms", "total_p95_ms", "total_max_ms", "hypotheses_median", "recall", "runs", "note")
+               "total_median_ms", "total_p95_ms", "total_max_ms", "hypotheses_median", "recall", "runs", "note", "date",
+               "machine")
 
 
 def format_table(results):
@@ -204,22 +205,37 @@ def format_table(results):
     return "\n".join(lines)
 
 
-def write_csv(results, path):
-    """The table as CSV, one row per model and method (times in ms)."""
+def write_csv(report, path):
+    """The table as CSV, one row per model and method (times in ms), each with the machine
+    and the date of the run."""
+    where = {"date": report["date"], "machine": machine_text(report["machine"])}
     with open(path, "w", newline="") as fh:
         writer = csv.DictWriter(fh, fieldnames=CSV_COLUMNS)
         writer.writeheader()
-        writer.writerows({k: round(v, 4) if isinstance(v, float) else v for k, v in row.items()}
-                         for row in table_rows(results))
+        writer.writerows({k: round(v, 4) if isinstance(v, float) else v for k, v in row.items()} | where
+                         for row in table_rows(report["models"]))
     return path
 
 
-def plot_stages(results, path):
-    """PNG of the median time of each stage (log scale), fast beside paper, one panel per model."""
+def machine_text(machine):
+    """The machine in a few words: "AMD EPYC, 2 cores, 23.5 GiB, Python 3.11.7"."""
+    return (f"{machine.get('cpu')}, {machine.get('cores')} cores, {machine.get('memory_gib')} GiB, "
+            f"Python {machine.get('python')}")
+
+
+def utc_now():
+    """The present time, UTC, ISO 8601 to the second."""
+    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+
+
+def plot_stages(report, path):
+    """PNG of the median time of each stage (log scale), fast beside paper, one panel per model;
+    the machine and the date below."""
     from matplotlib.figure import Figure
     from matplotlib.ticker import FuncFormatter, NullFormatter
 
-    fig = Figure(figsize=(1.0 + 3.0 * len(results), 3.8), dpi=130)
+    results = report["models"]
+    fig = Figure(figsize=(1.0 + 3.0 * len(results), 4.0), dpi=130)
     axes = fig.subplots(1, len(results), squeeze=False, sharey=True)[0]
     x = np.arange(len(TABLE_STAGES))
     for ax, r in zip(axes, results):
@@ -237,7 +253,8 @@ def plot_stages(results, path):
         ax.legend(fontsize=7)
     axes[0].set_ylabel("median time [ms]", fontsize=8)
     fig.suptitle(f"online stages, {results[0]['fast']['runs']} grasps per model", fontsize=10)
-    fig.tight_layout()
+    fig.text(0.5, 0.01, f"{machine_text(report['machine'])}; {report['date']}", ha="center", fontsize=7)
+    fig.tight_layout(rect=(0, 0.04, 1, 1))
     fig.savefig(path)
     return path
 
@@ -263,10 +280,10 @@ def run_bench(names=DEFAULT_MODELS, *, runs=25, seed=0, paper_cap=20.0, out_dir=
     start = time.perf_counter()
     with tempfile.TemporaryDirectory() as workdir:
         results = [bench_model(n, runs, seed, paper_cap, workdir) for n in names]
-    report = {**bench_header(), "machine": machine_description(), "runs": runs, "seed": seed,
+    report = {**bench_header(), "machine": machine_description(), "date": utc_now(), "runs": runs, "seed": seed,
               "noise": {"position": POSITION_NOISE, "normal_deg": NORMAL_NOISE_DEG}, "models": results,
               "total_ms": 1000.0 * (time.perf_counter() - start)}
-    print(f"machine: {report['machine']}")
+    print(f"machine: {report['machine']}, {report['date']}")
     print(format_table(results))
     for path in write_outputs(report, out_dir, json_path):
         print(f"written: {path}")
@@ -285,6 +302,6 @@ def write_outputs(report, out_dir, json_path):
             json.dump(report, fh, indent=1)
         written.append(json_path)
     if out_dir is not None:
-        written.append(write_csv(report["models"], os.path.join(out_dir, OUTPUT_FILES[1])))
-        written.append(plot_stages(report["models"], os.path.join(out_dir, OUTPUT_FILES[2])))
+        written.append(write_csv(report, os.path.join(out_dir, OUTPUT_FILES[1])))
+        written.append(plot_stages(report, os.path.join(out_dir, OUTPUT_FILES[2])))
     return written

@@ -45,7 +45,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from contactpose.geometry.kernels import point_triangle_distance
-from contactpose.geometry.metrics import nearest_twins, symmetric_errors
+from contactpose.geometry.metrics import mssd, nearest_twins, symmetric_errors
 from contactpose.io.modelfile import STORED_SYMMETRY, check_arrays
 
 log = logging.getLogger(__name__)
@@ -129,6 +129,12 @@ class Symmetry:
         """Rotation (degrees) and translation error of T_est against T_true modulo the group:
         :func:`contactpose.geometry.metrics.symmetric_errors`. T_* : (..., 4, 4) -> ((...), (...))"""
         return symmetric_errors(T_est, T_true, self.rotations, self.axes, self.centre)
+
+    def mssd(self, T_est, T_true, points):
+        """The BOP challenge's MSSD of T_est ((K, 4, 4) or (4, 4)) against T_true (4, 4) under
+        this group, over the object-frame vertices ``points`` (N, 3):
+        :func:`contactpose.geometry.metrics.mssd`. -> (K,) or a float, in length units"""
+        return mssd(T_est, T_true, points, self.rotations, self.axes, self.centre)
 
     def canonical(self, poses):
         """Each pose's twin (the poses T G that place the surface as T does) of least rotation

@@ -221,14 +221,8 @@ def make_banana53() -> trimesh.Trimesh:
     stem (+x) is cut off, as the paper allows for regions of little interest.
     The result is open at that facet. Unused vertices are dropped.
     """
-    import open3d as o3d  # slow import, only needed here
-
-    full = make_banana512()
-    o3 = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(full.vertices),
-                                   o3d.utility.Vector3iVector(full.faces))
-    reduced = o3.simplify_quadric_decimation(target_number_of_triangles=54)
-    verts = np.asarray(reduced.vertices, dtype=np.float64)
-    faces = np.asarray(reduced.triangles, dtype=np.int64)
+    reduced = decimate(make_banana512(), 54)
+    verts, faces = np.asarray(reduced.vertices), np.asarray(reduced.faces, dtype=np.int64)
     if len(faces) != 54:
         raise RuntimeError(f"quadric decimation gave {len(faces)} facets, expected 54")
     stem_tip = np.argmax(verts[faces].mean(axis=1)[:, 0])
@@ -358,14 +352,21 @@ def make_espresso(faces: int) -> trimesh.Trimesh:
     quadric decimation to about ``faces`` facets (paper §5: 83,846 scanned, 6,767
     reduced). Deterministic; about 0.35 m across. Not watertight (overlapping parts).
     """
-    import open3d as o3d
-
     from contactpose.sim.espresso import espresso_machine
 
-    big = espresso_machine(max(80_000, int(faces * 1.25)))
-    o3 = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(big.vertices), o3d.utility.Vector3iVector(big.faces))
-    small = o3.simplify_quadric_decimation(target_number_of_triangles=faces)
-    return _mesh(np.asarray(small.vertices), np.asarray(small.triangles))
+    return decimate(espresso_machine(max(80_000, int(faces * 1.25))), faces)
+
+
+def decimate(mesh, faces):
+    """``mesh`` (trimesh) reduced to about ``faces`` facets by Open3D's quadric decimation, in
+    the same frame (the paper's workflow: its banana went from 512 to 53 facets before the
+    search). Deterministic."""
+    import open3d as o3d  # slow import, only needed here
+
+    o3 = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(np.asarray(mesh.vertices, dtype=np.float64)),
+                                   o3d.utility.Vector3iVector(np.asarray(mesh.faces, dtype=np.int32)))
+    small = o3.simplify_quadric_decimation(target_number_of_triangles=int(faces))
+    return _mesh(np.asarray(small.vertices, dtype=np.float64), np.asarray(small.triangles, dtype=np.int64))
 
 
 # --------------------------------------------------------------------------
