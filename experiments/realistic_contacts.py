@@ -83,12 +83,13 @@ from contactpose.geometry.raycast import raycaster
 from contactpose.geometry.sampling import perturb_normals
 from contactpose.harness import sweep
 from contactpose.io.modelfile import FORMAT_VERSION
-from contactpose.localize import localize
+from contactpose.localize import DEFAULT_TIME_LIMIT, localize
 from contactpose.localize import warm_up as warm_localize
 from contactpose.model.object_model import ObjectModel, merged_mesh
 from contactpose.model.symmetry import symmetry
 from contactpose.model.table import estimate_bytes
 from contactpose.options import STATUSES, fit_threshold
+from contactpose.peers import chsel as chsel_peer
 from contactpose.scoring.infacet import within_noise
 from contactpose.search import find_pairs
 from contactpose.sim import fingertip, objects, ycb
@@ -97,7 +98,7 @@ from contactpose.stages import listed_rows
 
 NAME = "realistic_contacts"
 log = logging.getLogger(NAME)
-METHODS = ("fast", "paper", "icp-multistart", "scaling-series")
+METHODS = ("fast", "paper", "icp-multistart", "scaling-series", "chsel")
 #: Where the true assignment is lost, in pipeline order; "first": it is ranked first.
 STAGES = ("table", "tree", "fit", "ranking", "first")
 STAGE_TEXT = {"table": "table: a true pair not in S_ij", "tree": "tree: pairs there, tuple not listed",
@@ -248,22 +249,24 @@ def warm_up():
 
 def fingertips(s, rng, radius, cfg):
     """4 fingertip contacts on the object-frame mesh; a finger that misses is drawn again.
-    -> (points, outward normals, facets, features, redraws)"""
+    -> (points, outward normals, facets, features, redraws, the sweeps (FingertipContacts))"""
     n = cfg["fingers"]
     kw = dict(cone_deg=cfg["cone_deg"], mode=cfg["mode"])
     got = fingertip.approach(s.vertices, s.faces, rng, n, radius, **kw)
+    sweeps = [got]
     points, normals, facets, features = got.points.copy(), got.normals.copy(), got.facets.copy(), got.features.copy()
     missing, redraws = np.flatnonzero(~got.hit), 0
     while len(missing):
         if redraws >= cfg["max_redraws"]:
             raise RuntimeError(f"{redraws} fingertip redraws and still {len(missing)} misses")
         again = fingertip.approach(s.vertices, s.faces, rng, len(missing), radius, **kw)
+        sweeps.append(again)
         redraws += len(missing)
         hit = missing[again.hit]
         points[hit], normals[hit] = again.points[again.hit], again.normals[again.hit]
         facets[hit], features[hit] = again.facets[again.hit], again.features[again.hit]
         missing = missing[~again.hit]
-    return points, normals, facets, features, redraws
+    return points, normals, facets, features, redraws, sweeps
 
 
 def incident_facets(s, facet, point, feature):
@@ -394,13 +397,22 @@ def draw(s, rng, frac, cfg):
     """One grasp's draws, in the cell's order: pose, fingertips of radius frac x diameter,
     position noise, normal noise. -> (true pose, Contacts (world), object-frame points,
     outward normals, facets, features, redraws)"""
+    return draw_with_free_space(s, rng, frac, cfg)[:7]
+
+
+def draw_with_free_space(s, rng, frac, cfg):
+    """:func:`draw`, and the free space the hitting fingertips swept before they touched
+    (world frame, ``free_spacing_frac`` of the diameter apart, without noise: the outside
+    peers' free points; it draws nothing)."""
     D = s.model.diameter
     pose = simulate.random_pose(rng, max_translation=cfg["translation_frac"] * D)
-    points, normals, facets, features, redraws = fingertips(s, rng, frac * D, cfg)
+    points, normals, facets, features, redraws, sweeps = fingertips(s, rng, frac * D, cfg)
     R, t = pose[:3, :3], pose[:3, 3]
     world = points @ R.T + t + rng.normal(0.0, cfg["position_noise_frac"] * D, points.shape)
     finger = perturb_normals(-(normals @ R.T), np.radians(cfg["normal_noise_deg"]), rng)
-    return pose, Contacts(world, finger_normals=finger), points, normals, facets, features, redraws
+    free = np.concatenate([fingertip.swept_free_points(w, cfg["free_spacing_frac"] * D) for w in sweeps])
+    return (pose, Contacts(world, finger_normals=finger), points, normals, facets, features, redraws,
+            free @ R.T + t)
 
 
 def task(settings, rng, *, cfg, cache):
@@ -408,7 +420,7 @@ def task(settings, rng, *, cfg, cache):
     s = setup(name, cache, cfg)
     model = s.model
     D = model.diameter
-    pose, contacts, points, normals, facets, features, redraws = draw(s, rng, frac, cfg)
+    pose, contacts, points, normals, facets, features, redraws, free = draw_with_free_space(s, rng, frac, cfg)
     noise = dict(position_noise=cfg["position_noise_frac"] * D, normal_noise_deg=cfg["normal_noise_deg"])
     kinds = [str(f) for f in features]
     grasp = {"symmetry": ycb.symmetry(name) or "none", "diameter_mm": 1e3 * D, "radius_mm": 1e3 * frac * D,
@@ -441,7 +453,26 @@ def task(settings, rng, *, cfg, cache):
             row["time_wall_ms"] = row["time_online_ms"]
             row.update(score(s, b.pose[None], pose, cfg))
             rows.append({"method": method, **grasp, **row})
+    if seed < cfg["chsel_grasps"]:
+        rows.append({"method": "chsel", **grasp, **outside_peer(name, cache, cfg, s, contacts, free, pose, rng)})
     return rows
+
+
+def outside_peer(name, cache, cfg, s, contacts, free, truth, rng):
+    """CHSEL's row on one grasp (contactpose.peers.chsel, its README's settings), or a row that
+    says why it did not run. found: over its whole returned set, sorted by its RMSE."""
+    version = chsel_peer.available()
+    if version is None:
+        return {"ran": False, "note": "not run: CHSEL not installed (pip install contactpose[peers])"}
+    peer = sweep.cached((NAME, "chsel", name, str(cache)), lambda: chsel_peer.ChselPeer(s.vertices, s.faces))
+    start = time.perf_counter()
+    best, poses, rmse = peer.localize(contacts.points, free, rng, scale=cfg["translation_frac"] * s.model.diameter)
+    row = {"ran": True, "note": f"chsel {version}, batch {chsel_peer.BATCH}, {chsel_peer.ITERATIONS} iterations, CPU",
+           "cost": best.cost, "evaluations": best.evaluations, "free_points": len(free),
+           "time_online_ms": 1e3 * (time.perf_counter() - start)}
+    row["time_wall_ms"] = row["time_online_ms"]
+    row.update(score(s, poses, truth, cfg))
+    return row
 
 
 def make_sweep(cfg, name, cache):
@@ -551,7 +582,7 @@ def short(name):
     return stem(name).split("_", 1)[1]
 
 
-def summary_markdown(rows, models, cfg_text):
+def summary_markdown(rows, models, cfg_text, cfg=None):
     by = {(r["object"], float(r["radius_frac"]), r["method"], r["split"]): r for r in rows}
     objs = list(dict.fromkeys(r["object"] for r in rows))
     fracs = sorted({float(r["radius_frac"]) for r in rows})
@@ -613,8 +644,8 @@ def summary_markdown(rows, models, cfg_text):
               "`baseline_grasps`, `paper_grasps`); `ran` counts the grasps where a method gave an answer "
               "(the paper's: finished within its time cap).", "",
               "| r (% diam.) | method | ran / grasps | found % | top-1 ADD-S % | top-1 strict % | AR_MSSD % | "
-              "rot med (°) | trans med (mm) | online med / p95 (ms) | note |",
-              "|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---|"]
+              "rot med (°) | trans med (mm) | online med / p95 (ms) | budget | note |",
+              "|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---|---|"]
     for frac in fracs:
         for method in METHODS:
             tot = pooled(rows, frac, method)["all"]
@@ -623,7 +654,7 @@ def summary_markdown(rows, models, cfg_text):
                              f"{fmt(tot['top1_adds'], '.0f', 100)} | {fmt(tot['top1_strict'], '.0f', 100)} | "
                              f"{fmt(tot['ar_mssd'], '.0f', 100)} | "
                              f"{fmt(tot['rot'], '.1f')} | {fmt(tot['trans'], '.1f')} | {fmt(tot['ms'], '.0f')} / "
-                             f"{fmt(tot['ms95'], '.0f')} | {tot['note']} |")
+                             f"{fmt(tot['ms95'], '.0f')} | {budget(method, cfg or {})} | {tot['note']} |")
     lines += ["", "## Models (built once per object)", "",
               "| object | facets | patches | facet table | build (s) | peak RSS (GiB) | model file (GiB) | "
               "surface samples (s) |", "|---|---:|---:|---|---:|---:|---:|---:|"]
@@ -632,6 +663,14 @@ def summary_markdown(rows, models, cfg_text):
                      f"{fmt(m['build_s'], '.0f')} | {fmt(m['build_peak_rss_gib'], '.1f')} | "
                      f"{fmt(m['model_file_gib'], '.1f')} | {fmt(m['surface_s'], '.0f')} |")
     return "\n".join(lines) + "\n"
+
+
+def budget(method, cfg):
+    """The time or work each method was given per grasp, in words."""
+    return {"fast": f"time limit {DEFAULT_TIME_LIMIT:g} s",
+            "paper": f"time limit {cfg.get('paper_time_limit', float('nan')):g} s",
+            "icp-multistart": "32 starts", "scaling-series": "2,000 particles",
+            "chsel": f"{chsel_peer.BATCH} transforms x {chsel_peer.ITERATIONS} iterations"}[method]
 
 
 def pooled(rows, frac, method):
@@ -664,7 +703,7 @@ def write_summary(out):
             f"of the diameter, {int(np.max(c['seed'])) + 1} grasps per object and radius, 4 fingers (cone 30°), "
             f"noise σ_x = {100 * cfg.get('position_noise_frac', np.nan):g} % of the diameter, "
             f"σ_n = {cfg.get('normal_noise_deg', np.nan):g}°, Gaussian; localize told the noise.")
-    (out / "summary.md").write_text(summary_markdown(rows, models, text))
+    (out / "summary.md").write_text(summary_markdown(rows, models, text, cfg))
     return rows
 
 
@@ -735,7 +774,7 @@ def plot(out_dir):
         ax.legend(fontsize=5.5, frameon=False, loc="upper left")
         ax = axes[1, 1]
         method_style = {"fast": ("o", "tab:blue"), "paper": ("s", "tab:cyan"), "icp-multistart": ("v", "tab:red"),
-                        "scaling-series": ("D", "tab:green")}
+                        "scaling-series": ("D", "tab:green"), "chsel": ("^", "tab:purple")}
         grasps = sweep.read_columns(out / "timings.csv")
         for method, (marker, color) in method_style.items():
             tot = [pooled(rows, f, method)["all"] for f in fracs]

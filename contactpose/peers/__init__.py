@@ -5,7 +5,9 @@
 * :mod:`.scaling_series`: particle-filter global localization after the Scaling Series;
 * :mod:`.particle_filter`: a held object tracked by particles (for the tracks of
   tracking.track);
-* :mod:`.random_touch`: a random probe, the baseline of next-touch.
+* :mod:`.random_touch`: a random probe, the baseline of next-touch;
+* :mod:`.chsel`: CHSEL, an outside peer run by its own package (optional: ``pip install
+  contactpose[peers]``; not imported here, it needs torch).
 
 Nothing of the core imports this package (an import-linter contract in pyproject.toml).
 """

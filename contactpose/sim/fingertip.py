@@ -605,3 +605,27 @@ def approach(vertices, faces, rng, n, radius, *, cone_deg=30.0, mode="cone", sta
     out = _sweep(mesh, points - standoff * dirs, dirs, radius, max_travel, 1e-12)
     out.targets, out.target_facets = points, target_facets
     return out
+
+
+def swept_free_points(touch, spacing, inner=0.8):
+    """Points the fingertips swept through before they touched (object frame): the ball
+    centres along each hit finger's path from its start to its touch, ``spacing`` apart, and
+    for r > 0 the points inner·r from each centre along ±x, ±y and ±z, inside the ball, which
+    the first touch keeps outside the object. A fingertip of radius 0 (a ray) stops one
+    spacing short of its touch, which lies on the surface.
+
+    touch : FingertipContacts (from :func:`approach` or :func:`sweep_spheres`); spacing > 0
+    (length units); inner in [0, 1). -> (M, 3) float64
+    """
+    spacing = _positive(spacing, "spacing")
+    if not 0.0 <= inner < 1.0:
+        raise ContactPoseError(f"inner must be in [0, 1), got {inner!r}")
+    hit = np.flatnonzero(touch.hit)
+    end = touch.travel[hit] - (spacing if touch.radius == 0 else 0.0)
+    steps = [np.append(np.arange(0.0, e, spacing), e) if e >= 0 else np.zeros(0) for e in end]
+    centres = np.concatenate([touch.starts[k] + s[:, None] * touch.directions[k] for k, s in zip(hit, steps)]
+                             + [np.zeros((0, 3))])
+    if touch.radius == 0 or len(centres) == 0:
+        return centres
+    offsets = inner * touch.radius * np.concatenate([np.eye(3), -np.eye(3)])
+    return np.concatenate([centres, (centres[:, None, :] + offsets[None]).reshape(-1, 3)])

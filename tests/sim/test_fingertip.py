@@ -327,3 +327,26 @@ def test_approach_rejects_bad_input(change, message):
     kwargs = {**dict(rng=np.random.default_rng(0), n=3, radius=0.1), **change}
     with pytest.raises(ContactPoseError, match=message):
         approach(BOX.vertices, BOX.faces, **kwargs)
+
+
+@pytest.mark.parametrize("radius_rel", [0.0, 0.02, 0.05])
+def test_swept_free_points_lie_outside_the_object_along_each_path(radius_rel):
+    """The free space the fingers swept (the peers' free points): every point outside the
+    closed mesh by trimesh's signed distance; the centres on each finger's path from its start,
+    a spacing apart, up to its touch (a ray: one spacing short of it)."""
+    mesh = jittered_icosphere(seed=3)
+    D = diameter(mesh.vertices)
+    touch = approach(mesh.vertices, mesh.faces, np.random.default_rng(2), 4, radius_rel * D)
+    spacing = 0.02 * D
+    points = fingertip.swept_free_points(touch, spacing)
+    assert trimesh.proximity.signed_distance(mesh, points).max() < 0  # positive inside
+    per_finger = [np.floor((t - (spacing if radius_rel == 0 else 0)) / spacing) + 2 for t in touch.travel]
+    centres = points[:int(np.sum(per_finger))]
+    assert len(points) == len(centres) * (1 if radius_rel == 0 else 7)
+    first = 0
+    for k, count in enumerate(per_finger):
+        along = (centres[first:first + int(count)] - touch.starts[k]) @ touch.directions[k]
+        off = centres[first:first + int(count)] - touch.starts[k] - along[:, None] * touch.directions[k]
+        assert np.allclose(off, 0, atol=1e-12) and along.min() == 0
+        assert along.max() == pytest.approx(touch.travel[k] - (spacing if radius_rel == 0 else 0), abs=1e-12)
+        first += int(count)
