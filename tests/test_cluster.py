@@ -43,7 +43,7 @@ def loopback_cluster(tmp_path):
         yield address
     finally:
         for p in reversed(procs):
-            p.terminate()
+            p.kill()  # throwaway processes: no graceful shutdown to wait for
         for p in procs:
             p.wait(timeout=30)
 

@@ -169,6 +169,35 @@ def test_script_main_runs_plots_summarizes_and_redraws_from_csv(tmp_path, monkey
     assert made == [] and plotted == [out, out] and capsys.readouterr().out.startswith("8 rows\n")
 
 
+def test_set_overrides_a_config_setting_and_refuses_unknown_keys_and_bad_json(tmp_path, monkeypatch, capsys):
+    """--set KEY=JSON replaces one setting of the config file (the sweep and its config.json see
+    it); a key the config lacks or a value that is not JSON exits 2 with one line naming it."""
+    configs = tmp_path / "experiments" / "configs"
+    configs.mkdir(parents=True)
+    (configs / "toy.json").write_text(json.dumps({"common": {"scale": 2.0, "a": [1, 2]}, "quick": {"seeds": 2}}))
+    monkeypatch.setattr(sweep, "ROOT", tmp_path)
+    made = []
+
+    def make_sweep(cfg):
+        made.append(cfg)
+        return Sweep("toy", functools.partial(draw_task, scale=cfg["scale"]), {"a": cfg["a"]}, seeds=cfg["seeds"],
+                     config=cfg)
+
+    argv = ["--quick", "--workers", "0", "--out", str(tmp_path / "res")]
+    assert sweep.main("toy", "Toy.", make_sweep, lambda out: None, lambda out: "",
+                      argv + ["--set", "seeds=3", "--set", "a=[5]"]) == 0
+    assert made == [{"scale": 2.0, "a": [5], "seeds": 3}]
+    assert len(sweep.read_rows(tmp_path / "res" / "toy" / sweep.RESULTS_CSV)) == 6   # 1 a x 3 seeds x 2 rows
+    assert json.loads((tmp_path / "res" / "toy" / sweep.CONFIG_JSON).read_text())["config"]["seeds"] == 3
+    capsys.readouterr()
+    for bad, named in (("scal=1", "'scal=1'"), ("seeds=three", "'three'"), ("seeds", "'seeds'")):
+        with pytest.raises(SystemExit) as stop:
+            sweep.main("toy", "Toy.", make_sweep, lambda out: None, lambda out: "", argv + ["--set", bad])
+        assert stop.value.code == 2
+        message = capsys.readouterr().err.strip().splitlines()[-1]
+        assert named in message and "Traceback" not in message
+
+
 def test_write_rows_unions_columns_and_reads_back(tmp_path):
     path = tmp_path / "t.csv"
     sweep.write_rows(path, [{"a": 1, "b": 0.5}, {"c": "x", "a": 2}])

@@ -531,7 +531,7 @@ def read_columns(path):
 
 def add_arguments(parser, *, default_workers=None):
     """The options every experiment script shares: --quick, --workers, --scheduler, --out,
-    --fresh, --plot-only."""
+    --fresh, --plot-only, --set."""
     parser.add_argument("--quick", action="store_true", help="the small version (seconds, used by the tests)")
     parser.add_argument("--workers", type=int, default=default_workers,
                         help="LocalCluster worker processes (default: "
@@ -541,6 +541,9 @@ def add_arguments(parser, *, default_workers=None):
     parser.add_argument("--out", default=None, help="results root (default: results/, or results/_scratch/quick/ with --quick)")
     parser.add_argument("--fresh", action="store_true", help="ignore rows of a previous run instead of resuming")
     parser.add_argument("--plot-only", action="store_true", help="redraw the figures from the CSV without running")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=JSON",
+                        help="override one setting of the experiment's config file, its value in JSON "
+                             "(repeatable; e.g. --set seeds=20 --set 'objects=[\"ycb:025_mug\"]')")
     return parser
 
 
@@ -594,8 +597,30 @@ def start(name, doc, argv=None):
     its config. doc : the script's docstring (first line: --help). -> (args, config, out_dir)"""
     parser = add_arguments(argparse.ArgumentParser(description=doc.split("\n")[0]))
     args = parser.parse_args(argv)
+    config = load_config(name, args.quick)
+    try:
+        config = overridden(config, args.set)
+    except SweepError as err:
+        parser.error(str(err))
     setup_logging(name)
-    return args, load_config(name, args.quick), results_dir(args, name)
+    return args, config, results_dir(args, name)
+
+
+def overridden(config, settings):
+    """config with each "KEY=JSON" of settings applied; a key the config lacks or a value that
+    is not JSON raises SweepError naming it (the run records the result in config.json)."""
+    out = dict(config)
+    for item in settings:
+        key, sep, text = item.partition("=")
+        if not sep or key not in config:
+            raise SweepError(f"--set {item!r}: expected KEY=JSON with KEY one of the config's settings "
+                             f"({', '.join(sorted(config))})")
+        try:
+            out[key] = json.loads(text)
+        except ValueError:
+            raise SweepError(f"--set {item!r}: the value {text!r} is not JSON (strings need quotes: "
+                             f"'{key}=\"...\"')") from None
+    return out
 
 
 def run_logged(sweep, out_dir, args, config):
