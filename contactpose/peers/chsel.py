@@ -35,11 +35,11 @@ SDF_PADDING = 0.1
 
 def available():
     """The CHSEL package's version, or None when it is not installed."""
-    try:
-        from importlib.metadata import version
+    from importlib.metadata import PackageNotFoundError, version
 
+    try:
         return version("chsel")
-    except Exception:  # noqa: BLE001 - any failure to find it means "not installed"
+    except PackageNotFoundError:
         return None
 
 
