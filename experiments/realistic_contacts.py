@@ -780,7 +780,7 @@ def plot(out_dir):
             tot = [pooled(rows, f, method)["all"] for f in fracs]
             if not any(t["n"] for t in tot):
                 continue
-            label = f"{method} ({tot[0]['n']} grasps/radius)"
+            label = f"{method} ({' / '.join(str(t['n']) for t in tot)} grasps)"
             if not any(t["ran"] for t in tot):  # a method that never ran has no success rate, not one of 0 %
                 notes = grasps["note"][(grasps["method"] == method) & (grasps["ran"] == 0)]
                 why = str(notes[0]).removeprefix("not run: ").split(" (")[0] if len(notes) and notes[0] else ""
@@ -789,12 +789,14 @@ def plot(out_dir):
                 continue
             y = [t["top1_adds"] * t["ran"] / t["n"] if t["ran"] else np.nan for t in tot]  # unfinished: a miss
             ax.plot(x, y, "-" + marker, color=color, label=label)
+            ar = [t["ar_mssd"] * t["ran"] / t["n"] if t["ran"] else np.nan for t in tot]
+            ax.plot(x, ar, "--" + marker, color=color, mfc="none")
             for xi, t in zip(x, tot):
                 if t["n"] and not t["ran"]:
                     ax.annotate("not run", (xi, 0.02), ha="center", fontsize=5, color=color)
         ax.set_xlabel("fingertip radius (% of diameter)")
-        ax.set_ylabel("top-1 ADD-S success (unfinished: a miss)")
-        ax.set_title("methods on the same grasps (baselines: their subset)")
+        ax.set_ylabel("top-1 ADD-S (solid), AR_MSSD (dashed)")
+        ax.set_title("methods on the same grasps (unfinished: a miss)")
         ax.set_ylim(-0.03, 1.03)
         ax.legend(fontsize=6, frameon=False)
         return sweep.save_figure(fig, out, NAME)
