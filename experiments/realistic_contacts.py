@@ -22,7 +22,11 @@ from 512 to 53), its facet table built, the contacts searched there and the pose
 against the full mesh's truth (``paper_model_facets`` says on how many facets); ``icp-multistart`` (32
 random starts) and ``scaling-series`` (2000 particles) from contactpose/peers/ with their
 default budgets and ICP's default pad radius and correspondence distance (not tuned per object
-as experiments/baselines.py does), on the first ``baseline_grasps`` grasps.
+as experiments/baselines.py does), on the first ``baseline_grasps`` grasps; the Scaling Series as
+published (``peers.scaling_series_published``) on the first ``published_grasps``: ``ss-published``
+with ``published_per_neighbourhood`` particles per neighbourhood and its whole schedule, and
+``ss-published-timed`` with ``published_timed_per_neighbourhood`` within the time the default
+method took on that grasp.
 
 Per grasp and method: found (some returned hypothesis places the surface within ADD-S
 ``found_adds_frac`` = 5 % of the diameter; exact over all hypotheses, see :func:`any_within`),
@@ -98,7 +102,7 @@ from contactpose.stages import listed_rows
 
 NAME = "realistic_contacts"
 log = logging.getLogger(NAME)
-METHODS = ("fast", "paper", "icp-multistart", "scaling-series", "chsel")
+METHODS = ("fast", "paper", "icp-multistart", "scaling-series", "ss-published", "ss-published-timed", "chsel")
 #: Where the true assignment is lost, in pipeline order; "first": it is ranked first.
 STAGES = ("table", "tree", "fit", "ranking", "first")
 STAGE_TEXT = {"table": "table: a true pair not in S_ij", "tree": "tree: pairs there, tuple not listed",
@@ -453,8 +457,31 @@ def task(settings, rng, *, cfg, cache):
             row["time_wall_ms"] = row["time_online_ms"]
             row.update(score(s, b.pose[None], pose, cfg))
             rows.append({"method": method, **grasp, **row})
+    if seed < cfg["published_grasps"]:
+        rows += [{"method": r.pop("method"), **grasp, **r}
+                 for r in published_series(s, contacts, pose, noise, cfg, rng, rows[0]["time_online_ms"] / 1e3)]
     if seed < cfg["chsel_grasps"]:
         rows.append({"method": "chsel", **grasp, **outside_peer(name, cache, cfg, s, contacts, free, pose, rng)})
+    return rows
+
+
+def published_series(s, contacts, truth, noise, cfg, rng, ours_seconds):
+    """The Scaling Series as published (peers.scaling_series_published): with
+    ``published_per_neighbourhood`` particles per δ-neighbourhood and its own budget (its whole
+    schedule), and with ``published_timed_per_neighbourhood`` within the time ours took on the
+    grasp (``ss-published-timed``). -> two rows; ``note`` says where a series stopped early."""
+    rows = []
+    for method, m, seconds in (("ss-published", cfg["published_per_neighbourhood"], None),
+                               ("ss-published-timed", cfg["published_timed_per_neighbourhood"], ours_seconds)):
+        start = time.perf_counter()
+        b = bl.scaling_series_published(s.model, s.surface, contacts, rng, per_neighbourhood=m, seconds=seconds,
+                                        **noise)
+        row = {"ran": True, "note": f"M = {m}, {b.iterations} of {b.planned} scales" + (f"; {b.stopped}" if b.stopped
+                                                                                         else ""),
+               "cost": b.cost, "evaluations": b.evaluations, "time_online_ms": 1e3 * (time.perf_counter() - start)}
+        row["time_wall_ms"] = row["time_online_ms"]
+        row.update(score(s, b.pose[None], truth, cfg))
+        rows.append({"method": method, **row})
     return rows
 
 
@@ -518,7 +545,9 @@ def expected_minutes(cfg, cache):
     cells = len(cfg["objects"]) * len(cfg["radius_fracs"])
     work = cells * (cfg["seeds"] * (e["fast_seconds"] + e["check_seconds"])
                     + min(cfg["seeds"], cfg["baseline_grasps"]) * e["baseline_seconds"]
-                    + min(cfg["seeds"], cfg["paper_grasps"]) * e["paper_seconds"])
+                    + min(cfg["seeds"], cfg["paper_grasps"]) * e["paper_seconds"]
+                    + min(cfg["seeds"], cfg["published_grasps"]) * e["published_seconds"]
+                    + (min(cfg["seeds"], cfg["chsel_grasps"]) * e["chsel_seconds"] if chsel_peer.available() else 0.0))
     return builds * e["build_minutes"], work / 60.0 / max(cfg.get("workers") or 1, 1), builds
 
 
@@ -641,7 +670,8 @@ def summary_markdown(rows, models, cfg_text, cfg=None):
                          + " | ".join(str(x) for x in counts) + " |")
     lines += ["", "## Methods on the same grasps (all objects)", "",
               "Baselines and the paper's method run on the first grasps of each object and radius (config "
-              "`baseline_grasps`, `paper_grasps`); `ran` counts the grasps where a method gave an answer "
+              "`baseline_grasps`, `paper_grasps`, `published_grasps`, `chsel_grasps`); `ran` counts the grasps where a "
+              "method gave an answer "
               "(the paper's: finished within its time cap).", "",
               "| r (% diam.) | method | ran / grasps | found % | top-1 ADD-S % | top-1 strict % | AR_MSSD % | "
               "rot med (°) | trans med (mm) | online med / p95 (ms) | budget | note |",
@@ -670,6 +700,8 @@ def budget(method, cfg):
     return {"fast": f"time limit {DEFAULT_TIME_LIMIT:g} s",
             "paper": f"time limit {cfg.get('paper_time_limit', float('nan')):g} s",
             "icp-multistart": "32 starts", "scaling-series": "2,000 particles",
+            "ss-published": f"M = {cfg.get('published_per_neighbourhood')}, its whole schedule",
+            "ss-published-timed": f"M = {cfg.get('published_timed_per_neighbourhood')}, the time ours took",
             "chsel": f"{chsel_peer.BATCH} transforms x {chsel_peer.ITERATIONS} iterations"}[method]
 
 
@@ -774,7 +806,8 @@ def plot(out_dir):
         ax.legend(fontsize=5.5, frameon=False, loc="upper left")
         ax = axes[1, 1]
         method_style = {"fast": ("o", "tab:blue"), "paper": ("s", "tab:cyan"), "icp-multistart": ("v", "tab:red"),
-                        "scaling-series": ("D", "tab:green"), "chsel": ("^", "tab:purple")}
+                        "scaling-series": ("D", "tab:green"), "ss-published": ("P", "olive"),
+                        "ss-published-timed": ("X", "tab:olive"), "chsel": ("^", "tab:purple")}
         grasps = sweep.read_columns(out / "timings.csv")
         for method, (marker, color) in method_style.items():
             tot = [pooled(rows, f, method)["all"] for f in fracs]

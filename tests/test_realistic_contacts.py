@@ -126,7 +126,7 @@ def test_quick_run_writes_every_output(tmp_path):
               "realistic_contacts.png", "realistic_contacts.pdf"):
         assert (out / f).stat().st_size > 0, f
     rows = sweep.read_rows(out / "grasps.csv")
-    assert {r["method"] for r in rows} == {"fast", "paper", "icp-multistart", "scaling-series", "chsel"}
+    assert {r["method"] for r in rows} == set(rc.METHODS)
     paper = [r for r in rows if r["method"] == "paper"]
     assert paper and all(int(r["paper_model_facets"]) <= 500 for r in paper)  # the YCB meshes decimated
     assert all(r["mssd_mm"] != "" for r in rows if r["ran"] == "1" and r["rot_err_deg"] != "")

@@ -96,12 +96,15 @@ def facet_neighbours(model, radius):
 @dataclass
 class BaselineResult:
     """One baseline estimate: pose (4, 4) T_world_object, its contact cost (whitened χ²),
-    the number of poses scored and of iterations (ICP runs or Scaling Series scales)."""
+    the number of poses scored and of iterations (ICP runs or Scaling Series scales); a method
+    with a schedule also gives the iterations it planned and, when it stopped early, why."""
 
     pose: np.ndarray
     cost: float
     evaluations: int
     iterations: int
+    planned: int = 0
+    stopped: str = ""
 
 
 # --------------------------------------------------------------------------- likelihood
