@@ -14,7 +14,9 @@ that noise, drawn once per grasp and level and shared by every method):
   tuning sweep on other grasps (``tuning/``);
 * ``icp-multistart``: the same ICP from K random starts, no prior, lowest contact χ² wins;
 * ``scaling-series``: the Scaling-Series particle filter (:func:`contactpose.peers.scaling_series`)
-  with the prior and globally, at three particle budgets (S, M, L).
+  with the prior and globally, at three particle budgets (S, M, L);
+* ``ss-published``: the Scaling Series as published (:func:`contactpose.peers.scaling_series_published`),
+  no prior, its whole schedule, with M particles per neighbourhood for each M of ``published_series``.
 
 Success: rotation error < 5° and translation error < 5 % of the diameter.
 
@@ -184,6 +186,11 @@ def eval_task(settings, rng, *, cfg):
         b = bl.scaling_series(model, surface, g.contacts, rng, prior=None, initial=ss["initial"],
                               per_ball=ss["per_ball"], max_particles=ss["max_particles"], **noise)
         add("scaling-series", "none", ss["label"], b.pose, time.perf_counter() - t, b.cost)
+    for m in cfg["published_series"]:
+        t = time.perf_counter()
+        b = bl.scaling_series_published(model, surface, g.contacts, rng, per_neighbourhood=m, **noise)
+        add("ss-published", "none", f"M={m}", b.pose, time.perf_counter() - t, b.cost)
+        rows[-1].update(particles=b.evaluations, stopped=b.stopped)
     return rows
 
 
@@ -200,7 +207,8 @@ def eval_sweep(cfg):
 # --------------------------------------------------------------------------- figure and summary
 
 MARKERS = {"ours-fast": ("o", "tab:blue"), "ours-paper": ("s", "tab:cyan"), "prior": ("x", "0.4"),
-           "icp": ("^", "tab:red"), "icp-multistart": ("v", "tab:red"), "scaling-series": ("D", "tab:green")}
+           "icp": ("^", "tab:red"), "icp-multistart": ("v", "tab:red"), "scaling-series": ("D", "tab:green"),
+           "ss-published": ("P", "olive")}
 
 
 def stats(c):

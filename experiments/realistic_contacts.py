@@ -431,14 +431,15 @@ def task(settings, rng, *, cfg, cache):
              "features": " ".join(kinds), "n_face": kinds.count(fingertip.FACE), "n_edge": kinds.count(fingertip.EDGE),
              "n_vertex": kinds.count(fingertip.VERTEX), "face_only": all(k == fingertip.FACE for k in kinds),
              "redraws": redraws, "spread_mm": 1e3 * contacts.spread}
-    rows = []
+    rows, run = [], set(cfg["methods"])
     # the default method, with where the truth is lost
-    r, row = ours(s, contacts, pose, noise, cfg)
-    true_sets = [incident_facets(s, f, p, k) for f, p, k in zip(facets, points, kinds)]
-    row.update(truth_columns(s, contacts, r, true_sets, facets, cfg))
-    rows.append({"method": "fast", **grasp, **row})
+    if "fast" in run:
+        r, row = ours(s, contacts, pose, noise, cfg)
+        true_sets = [incident_facets(s, f, p, k) for f, p, k in zip(facets, points, kinds)]
+        row.update(truth_columns(s, contacts, r, true_sets, facets, cfg))
+        rows.append({"method": "fast", **grasp, **row})
     # the paper's method, within its time cap
-    if seed < cfg["paper_grasps"]:
+    if "paper" in run and seed < cfg["paper_grasps"]:
         small = model if model.table is not None else paper_model(name, cache, cfg)
         r, row = ours(s, contacts, pose, noise, cfg, model=small, method="paper", time_limit=cfg["paper_time_limit"])
         if r.status == "time_limit":
@@ -447,32 +448,38 @@ def task(settings, rng, *, cfg, cache):
         rows.append({"method": "paper", **grasp, **row, "paper_model_facets": small.num_facets})
     # the baselines, default budgets
     if seed < cfg["baseline_grasps"]:
-        for method, run in (("icp-multistart", lambda: bl.icp_multistart(model, s.surface, s.target, contacts, rng,
-                                                                           **noise)),
-                            ("scaling-series", lambda: bl.scaling_series(model, s.surface, contacts, rng, **noise))):
+        for method, call in (("icp-multistart", lambda: bl.icp_multistart(model, s.surface, s.target, contacts, rng,
+                                                                            **noise)),
+                             ("scaling-series", lambda: bl.scaling_series(model, s.surface, contacts, rng, **noise))):
+            if method not in run:
+                continue
             start = time.perf_counter()
-            b = run()
+            b = call()
             row = {"ran": True, "note": "", "cost": b.cost, "evaluations": b.evaluations,
                    "time_online_ms": 1e3 * (time.perf_counter() - start)}
             row["time_wall_ms"] = row["time_online_ms"]
             row.update(score(s, b.pose[None], pose, cfg))
             rows.append({"method": method, **grasp, **row})
     if seed < cfg["published_grasps"]:
+        ours_seconds = rows[0]["time_online_ms"] / 1e3 if "fast" in run else None
         rows += [{"method": r.pop("method"), **grasp, **r}
-                 for r in published_series(s, contacts, pose, noise, cfg, rng, rows[0]["time_online_ms"] / 1e3)]
-    if seed < cfg["chsel_grasps"]:
+                 for r in published_series(s, contacts, pose, noise, cfg, rng, ours_seconds, run)]
+    if "chsel" in run and seed < cfg["chsel_grasps"]:
         rows.append({"method": "chsel", **grasp, **outside_peer(name, cache, cfg, s, contacts, free, pose, rng)})
     return rows
 
 
-def published_series(s, contacts, truth, noise, cfg, rng, ours_seconds):
+def published_series(s, contacts, truth, noise, cfg, rng, ours_seconds, run=METHODS):
     """The Scaling Series as published (peers.scaling_series_published): with
     ``published_per_neighbourhood`` particles per δ-neighbourhood and its own budget (its whole
     schedule), and with ``published_timed_per_neighbourhood`` within the time ours took on the
-    grasp (``ss-published-timed``). -> two rows; ``note`` says where a series stopped early."""
+    grasp (``ss-published-timed``), those of them in ``run``. -> rows; ``note`` says where a
+    series stopped early."""
     rows = []
     for method, m, seconds in (("ss-published", cfg["published_per_neighbourhood"], None),
                                ("ss-published-timed", cfg["published_timed_per_neighbourhood"], ours_seconds)):
+        if method not in run:
+            continue
         start = time.perf_counter()
         b = bl.scaling_series_published(s.model, s.surface, contacts, rng, per_neighbourhood=m, seconds=seconds,
                                         **noise)
@@ -841,8 +848,33 @@ def summary(out_dir):
 
 # --------------------------------------------------------------------------- driver
 
+#: Config key of the grasps each method runs on (the default method: every grasp).
+GRASPS_KEY = {"fast": "seeds", "paper": "paper_grasps", "icp-multistart": "baseline_grasps",
+              "scaling-series": "baseline_grasps", "ss-published": "published_grasps",
+              "ss-published-timed": "published_grasps", "chsel": "chsel_grasps"}
+
+
+def methods_problem(cfg):
+    """Why the config's ``methods`` cannot run (one line), or None. A run of some methods only
+    (e.g. CHSEL in a pass of its own) draws the same grasps; every grasp needs some method."""
+    methods = cfg["methods"]
+    unknown = [m for m in methods if m not in METHODS]
+    if unknown or not methods:
+        return f"methods {methods!r}: expected a non-empty list of {', '.join(METHODS)}"
+    if "ss-published-timed" in methods and "fast" not in methods:
+        return "methods: ss-published-timed takes the time of the default method, so it needs \"fast\" too"
+    if max(cfg[GRASPS_KEY[m]] for m in methods) < cfg["seeds"]:
+        return (f"methods {methods!r} run on fewer grasps than seeds = {cfg['seeds']}: lower seeds to "
+                f"{max(cfg[GRASPS_KEY[m]] for m in methods)}")
+    return None
+
+
 def main(argv=None):
     args, cfg, out = sweep.start(NAME, __doc__, argv)
+    problem = methods_problem(cfg)
+    if problem:
+        print(f"{NAME}: {problem}", file=sys.stderr)
+        return 2
     cache = sweep.ROOT / cfg["model_cache"]
     if not args.plot_only:
         out.mkdir(parents=True, exist_ok=True)

@@ -139,3 +139,20 @@ def test_quick_run_writes_every_output(tmp_path):
     table = [line for line in (out / "before_after.md").read_text().splitlines() if "→" in line]
     assert table and all(len(set(cell.split(" → "))) == 1 for line in table for cell in line.split(" | ")[2:-1]
                          if "→" in cell)
+
+
+def test_a_run_of_some_methods_is_checked_before_it_starts(tmp_path, capsys):
+    """--set methods=[...]: unknown names, the timed series without the default method, and
+    seeds beyond every chosen method's grasps exit 2 with one line; a valid subset passes."""
+    cfg = {"methods": list(rc.METHODS), "seeds": 100, "paper_grasps": 20, "baseline_grasps": 100,
+           "published_grasps": 20, "chsel_grasps": 20}
+    assert rc.methods_problem(cfg) is None
+    assert rc.methods_problem({**cfg, "methods": ["chsel"], "seeds": 20}) is None
+    assert "lower seeds to 20" in rc.methods_problem({**cfg, "methods": ["chsel"]})
+    assert "needs \"fast\"" in rc.methods_problem({**cfg, "methods": ["ss-published-timed"], "seeds": 20})
+    assert "'icp'" in rc.methods_problem({**cfg, "methods": ["icp"]})
+    argv = ["--quick", "--out", str(tmp_path), "--set", 'methods=["chsel"]']
+    assert rc.main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "lower seeds to 1" in err[0]
+    assert not (tmp_path / "realistic_contacts" / "grasps.csv").exists()
