@@ -23,10 +23,9 @@ against the full mesh's truth (``paper_model_facets`` says on how many facets); 
 random starts) and ``scaling-series`` (2000 particles) from contactpose/peers/ with their
 default budgets and ICP's default pad radius and correspondence distance (not tuned per object
 as experiments/baselines.py does), on the first ``baseline_grasps`` grasps; the Scaling Series as
-published (``peers.scaling_series_published``) on the first ``published_grasps``: ``ss-published``
-with ``published_per_neighbourhood`` particles per neighbourhood and its whole schedule, and
-``ss-published-timed`` with ``published_timed_per_neighbourhood`` within the time the default
-method took on that grasp.
+published (``peers.scaling_series_published``, ``published_per_neighbourhood`` particles per
+neighbourhood) on the first ``published_grasps``: ``ss-published`` with its whole schedule,
+``ss-published-timed`` within the time the default method took on that grasp.
 
 Per grasp and method: found (some returned hypothesis places the surface within ADD-S
 ``found_adds_frac`` = 5 % of the diameter; exact over all hypotheses, see :func:`any_within`),
@@ -470,14 +469,14 @@ def task(settings, rng, *, cfg, cache):
 
 
 def published_series(s, contacts, truth, noise, cfg, rng, ours_seconds, run=METHODS):
-    """The Scaling Series as published (peers.scaling_series_published): with
-    ``published_per_neighbourhood`` particles per δ-neighbourhood and its own budget (its whole
-    schedule), and with ``published_timed_per_neighbourhood`` within the time ours took on the
-    grasp (``ss-published-timed``), those of them in ``run``. -> rows; ``note`` says where a
+    """The Scaling Series as published (peers.scaling_series_published) with
+    ``published_per_neighbourhood`` particles per δ-neighbourhood: its whole schedule
+    (``ss-published``), and within the time ours took on the grasp (``ss-published-timed``),
+    those of them in ``run``. -> rows; ``note`` says where a
     series stopped early."""
     rows = []
-    for method, m, seconds in (("ss-published", cfg["published_per_neighbourhood"], None),
-                               ("ss-published-timed", cfg["published_timed_per_neighbourhood"], ours_seconds)):
+    m = cfg["published_per_neighbourhood"]
+    for method, seconds in (("ss-published", None), ("ss-published-timed", ours_seconds)):
         if method not in run:
             continue
         start = time.perf_counter()
@@ -708,7 +707,7 @@ def budget(method, cfg):
             "paper": f"time limit {cfg.get('paper_time_limit', float('nan')):g} s",
             "icp-multistart": "32 starts", "scaling-series": "2,000 particles",
             "ss-published": f"M = {cfg.get('published_per_neighbourhood')}, its whole schedule",
-            "ss-published-timed": f"M = {cfg.get('published_timed_per_neighbourhood')}, the time ours took",
+            "ss-published-timed": f"M = {cfg.get('published_per_neighbourhood')}, the time ours took",
             "chsel": f"{chsel_peer.BATCH} transforms x {chsel_peer.ITERATIONS} iterations"}[method]
 
 
