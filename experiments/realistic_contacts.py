@@ -61,6 +61,17 @@ summary.md, config.json, run.json and realistic_contacts.png/pdf (drawn from the
     .venv/bin/python experiments/realistic_contacts.py               # 12 objects x 4 radii x 100 grasps
     .venv/bin/python experiments/realistic_contacts.py --quick       # 2 objects x 2 radii x 3 grasps
     .venv/bin/python experiments/realistic_contacts.py --plot-only   # summary and figures from the CSVs
+
+A run of some methods only (config ``methods``) draws the same grasps, so CHSEL, which needs the
+optional extra and takes minutes a grasp, can run in a pass of its own and join the others
+(``merge_runs``: the ``--out`` roots of the other passes; their rows are published beside
+this run's)::
+
+    ALL='["fast","paper","icp-multistart","scaling-series","ss-published","ss-published-timed"]'
+    .venv/bin/python experiments/realistic_contacts.py --out results/_scratch/a --set "methods=$ALL"
+    python experiments/realistic_contacts.py --out results/_scratch/b --set 'methods=["chsel"]' --set seeds=20
+    .venv/bin/python experiments/realistic_contacts.py --out results/_scratch/a --set "methods=$ALL" \
+        --set 'merge_runs=["results/_scratch/b"]'
 """
 
 from __future__ import annotations
@@ -509,7 +520,7 @@ def outside_peer(name, cache, cfg, s, contacts, free, truth, rng):
 
 
 def make_sweep(cfg, name, cache):
-    fixed = {k: v for k, v in cfg.items() if k not in ("objects", "estimate", "keep_models", "workers")}
+    fixed = {k: v for k, v in cfg.items() if k not in ("objects", "estimate", "keep_models", "workers", "merge_runs")}
     return sweep.Sweep(f"{NAME}:{stem(name)}", functools.partial(task, cfg=cfg, cache=str(cache)),
                        {"object": [name], "radius_frac": cfg["radius_fracs"]}, seeds=cfg["seeds"],
                        base_seed=cfg["base_seed"], seed_axes=("object",), config=fixed)
@@ -868,9 +879,38 @@ def methods_problem(cfg):
     return None
 
 
+#: Config keys in which a merged run may differ: which methods ran, on how many grasps.
+MERGE_FREE = ("methods", "seeds", "paper_grasps", "baseline_grasps", "published_grasps", "chsel_grasps")
+
+
+def merge_dir(name, root):
+    """Stage directory of object ``name`` in the run written with ``--out root``."""
+    return sweep.ROOT / root / NAME / "_scratch" / "sweeps" / stem(name)
+
+
+def merge_problem(cfg, cache):
+    """Why the runs of ``merge_runs`` cannot join this one (one line), or None. Each must hold
+    every object, drawn alike (the same config but for MERGE_FREE, the same seeds), with none
+    of this run's methods."""
+    for root in cfg["merge_runs"]:
+        for name in cfg["objects"]:
+            path = merge_dir(name, root) / sweep.CONFIG_JSON
+            if not path.exists():
+                return f"merge_runs: no run of {name} in {path.parent}"
+            other, mine = json.loads(path.read_text()), make_sweep(cfg, name, cache).config_record()
+            a, b = ({k: v for k, v in r["config"].items() if k not in MERGE_FREE} for r in (mine, other))
+            differ = sorted(k for k in a.keys() | b.keys() if a.get(k) != b.get(k))
+            if differ or other["base_seed"] != mine["base_seed"] or other["seed_axes"] != mine["seed_axes"]:
+                return f"merge_runs: {path.parent} drew other grasps ({', '.join(differ) or 'seeds'} differ)"
+            both = set(other["config"]["methods"]) & set(cfg["methods"])
+            if both:
+                return f"merge_runs: {path.parent} also ran {', '.join(sorted(both))}"
+    return None
+
+
 def main(argv=None):
     args, cfg, out = sweep.start(NAME, __doc__, argv)
-    problem = methods_problem(cfg)
+    problem = methods_problem(cfg) or merge_problem(cfg, sweep.ROOT / cfg["model_cache"])
     if problem:
         print(f"{NAME}: {problem}", file=sys.stderr)
         return 2
@@ -894,6 +934,7 @@ def main(argv=None):
                 sweep.run_logged(sw, stage, args, cfg)
                 if not cfg["keep_models"]:
                     model_files(cache, name)["model"].unlink(missing_ok=True)
+            stages += [merge_dir(name, root) for root in cfg["merge_runs"]]
             publish(out, cfg, stages, metas, time.perf_counter() - start)
             plot(out)
             log.info("%s: done, %.0f min so far", name, (time.perf_counter() - start) / 60)

@@ -156,3 +156,26 @@ def test_a_run_of_some_methods_is_checked_before_it_starts(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "lower seeds to 1" in err[0]
     assert not (tmp_path / "realistic_contacts" / "grasps.csv").exists()
+
+
+def test_runs_over_the_same_grasps_merge_and_others_are_refused(tmp_path):
+    """merge_runs: a pass of other methods over the same draws joins; one that drew other grasps,
+    ran one of this run's methods, or lacks an object is refused with one line."""
+    cfg = {**sweep.load_config(rc.NAME, quick=True), "methods": ["fast"], "merge_runs": [str(tmp_path)]}
+
+    def other_run(**changes):
+        for name in cfg["objects"]:
+            record = rc.make_sweep({**cfg, **changes}, name, tmp_path).config_record()
+            d = rc.merge_dir(name, tmp_path)
+            d.mkdir(parents=True, exist_ok=True)
+            (d / sweep.CONFIG_JSON).write_text(__import__("json").dumps(record))
+
+    assert "no run of" in rc.merge_problem(cfg, tmp_path)
+    other_run(methods=["chsel"], seeds=1, chsel_grasps=1)
+    assert rc.merge_problem(cfg, tmp_path) is None
+    other_run(methods=["chsel", "fast"])
+    assert "also ran fast" in rc.merge_problem(cfg, tmp_path)
+    other_run(methods=["chsel"], normal_noise_deg=2.0)
+    assert "(normal_noise_deg differ)" in rc.merge_problem(cfg, tmp_path)
+    other_run(methods=["chsel"], base_seed=7)
+    assert "drew other grasps" in rc.merge_problem(cfg, tmp_path)
