@@ -3,15 +3,14 @@ localization of objects via touch", IEEE T-RO 2011), in two forms.
 
 :func:`scaling_series_published` runs the algorithm as published: its schedule of
 N = log2(Vol(S_δ0)/Vol(S_δ*)) scales, M particles per δ-neighbourhood, no cap on the particle
-set, a last cover weighted at τ = 1. :func:`scaling_series` is the budgeted variant the
-baselines were tuned with (research/baselines.md).
-
-In :func:`scaling_series`, particles in SE(3) are refined over a sequence of shrinking neighbourhoods δ_k = δ_0 · zoom^k;
-at each scale, ``per_ball`` samples are drawn uniformly in the δ-ball of every surviving
-particle (Even Density Cover), weighted by the contact likelihood annealed to the scale (σ²
-inflated by τ = (δ_k/δ*)²), and pruned by importance resampling. The scales stop at δ*, the
-resolution the measurement noise supports. It scores a pose with the peers' contact
-likelihood (peers.surface.contact_cost); research/baselines.md says how it was tuned.
+set, a last cover weighted at τ = 1 (research/baselines.md gives the source of each step and
+setting). :func:`scaling_series` is the budgeted variant the baselines were tuned with: particles
+in SE(3) are refined over a sequence of shrinking neighbourhoods δ_k = δ_0 · zoom^k; at each
+scale, ``per_ball`` samples are drawn uniformly in the δ-ball of every surviving particle,
+weighted by the contact likelihood annealed to the scale (σ² inflated by τ = (δ_k/δ*)²), and
+pruned by importance resampling to at most ``max_particles``. The scales stop at δ*, the
+resolution the measurement noise supports. Both score a pose with the peers' contact likelihood
+(peers.surface.contact_cost).
 """
 
 from __future__ import annotations
@@ -129,7 +128,7 @@ def _prune(rng, R, c, cost, tau, keep):
 def scaling_series_published(model, surface, contacts, rng, *, position_noise, normal_noise_deg,
                              per_neighbourhood=PER_NEIGHBOURHOOD, delta_final=None, seconds=None,
                              max_cover=MAX_COVER):
-    """The Scaling Series as published (T-RO 2011, its algorithm "Scaling Series"), global.
+    """The Scaling Series as published, global (steps and settings: research/baselines.md).
 
     V_0: every rotation, the surface centre in the ρ-ball around the contacts' centroid; δ_0 = π·ρ
     in the metric of :func:`scaling_series`. δ* (default max(σ_x, ρ·σ_n): at τ = 1 the weights
