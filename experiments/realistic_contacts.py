@@ -483,8 +483,7 @@ def published_series(s, contacts, truth, noise, cfg, rng, ours_seconds, run=METH
     """The Scaling Series as published (peers.scaling_series_published) with
     ``published_per_neighbourhood`` particles per δ-neighbourhood: its whole schedule
     (``ss-published``), and within the time ours took on the grasp (``ss-published-timed``),
-    those of them in ``run``. -> rows; ``note`` says where a
-    series stopped early."""
+    those of them in ``run``. -> rows; ``note`` says where a series stopped early."""
     rows = []
     m = cfg["published_per_neighbourhood"]
     for method, seconds in (("ss-published", None), ("ss-published-timed", ours_seconds)):
@@ -493,9 +492,9 @@ def published_series(s, contacts, truth, noise, cfg, rng, ours_seconds, run=METH
         start = time.perf_counter()
         b = bl.scaling_series_published(s.model, s.surface, contacts, rng, per_neighbourhood=m, seconds=seconds,
                                         **noise)
-        row = {"ran": True, "note": f"M = {m}, {b.iterations} of {b.planned} scales" + (f"; {b.stopped}" if b.stopped
-                                                                                         else ""),
-               "cost": b.cost, "evaluations": b.evaluations, "time_online_ms": 1e3 * (time.perf_counter() - start)}
+        note = "; ".join(filter(None, (f"M = {m}, {b.iterations} of {b.planned} scales", b.stopped)))
+        row = {"ran": True, "note": note, "cost": b.cost, "evaluations": b.evaluations,
+               "time_online_ms": 1e3 * (time.perf_counter() - start)}
         row["time_wall_ms"] = row["time_online_ms"]
         row.update(score(s, b.pose[None], truth, cfg))
         rows.append({"method": method, **row})
