@@ -465,11 +465,7 @@ def task(settings, rng, *, cfg, cache):
                 continue
             start = time.perf_counter()
             b = call()
-            row = {"ran": True, "note": "", "cost": b.cost, "evaluations": b.evaluations,
-                   "time_online_ms": 1e3 * (time.perf_counter() - start)}
-            row["time_wall_ms"] = row["time_online_ms"]
-            row.update(score(s, b.pose[None], pose, cfg))
-            rows.append({"method": method, **grasp, **row})
+            rows.append({"method": method, **grasp, **peer_row(s, b, start, pose, cfg)})
     if seed < cfg["published_grasps"]:
         ours_seconds = rows[0]["time_online_ms"] / 1e3 if "fast" in run else None
         rows += [{"method": r.pop("method"), **grasp, **r}
@@ -493,12 +489,16 @@ def published_series(s, contacts, truth, noise, cfg, rng, ours_seconds, run=METH
         b = bl.scaling_series_published(s.model, s.surface, contacts, rng, per_neighbourhood=m, seconds=seconds,
                                         **noise)
         note = "; ".join(filter(None, (f"M = {m}, {b.iterations} of {b.planned} scales", b.stopped)))
-        row = {"ran": True, "note": note, "cost": b.cost, "evaluations": b.evaluations,
-               "time_online_ms": 1e3 * (time.perf_counter() - start)}
-        row["time_wall_ms"] = row["time_online_ms"]
-        row.update(score(s, b.pose[None], truth, cfg))
-        rows.append({"method": method, **row})
+        rows.append({"method": method, **peer_row(s, b, start, truth, cfg, note)})
     return rows
+
+
+def peer_row(s, b, start, truth, cfg, note=""):
+    """A peer's row from its BaselineResult b, begun at perf_counter ``start``: cost, work,
+    wall time (its online time) and the scores of its one pose."""
+    ms = 1e3 * (time.perf_counter() - start)
+    return {"ran": True, "note": note, "cost": b.cost, "evaluations": b.evaluations, "time_online_ms": ms,
+            "time_wall_ms": ms, **score(s, b.pose[None], truth, cfg)}
 
 
 def outside_peer(name, cache, cfg, s, contacts, free, truth, rng):
