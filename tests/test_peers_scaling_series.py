@@ -90,3 +90,18 @@ def test_published_series_stops_at_its_budgets_and_says_so(banana):
     r = ss.scaling_series_published(model, surface, g.contacts, np.random.default_rng(5), per_neighbourhood=30,
                                     max_cover=100, **NOISE)
     assert r.iterations < r.planned and "would pass 100" in r.stopped
+
+
+def test_contact_cost_in_blocks_equals_pose_by_pose(banana, monkeypatch):
+    """Scored in blocks smaller than one pose's contacts, the χ² of many poses equals each
+    pose's χ² scored alone: the blocks bound memory and change nothing."""
+    model, surface = banana
+    rng = np.random.default_rng(6)
+    g = simulate.grasp(model, rng, n=4, **NOISE)
+    poses = np.repeat(g.pose[None], 9, axis=0)
+    poses[1:, :3, :3] = Rotation.random(8, random_state=rng).as_matrix() @ g.pose[:3, :3]
+    poses[1:, :3, 3] += rng.normal(0.0, 0.01, (8, 3))
+    alone = [peers.contact_cost(model, surface, g.contacts, pose[None], **NOISE)[0] for pose in poses]
+    monkeypatch.setattr(peers.surface, "PAIRS_PER_BLOCK", 3 * surface.neighbours.shape[1])  # 3 contacts a block
+    assert np.allclose(peers.contact_cost(model, surface, g.contacts, poses, **NOISE), alone, rtol=1e-12, atol=0)
+    assert peers.contact_cost(model, surface, g.contacts, poses[:0], **NOISE).shape == (0,)

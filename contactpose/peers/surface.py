@@ -25,6 +25,9 @@ MIN_PER_FACET = 4
 #: contact pushed by noise past an edge or onto the far side of a thin part still finds the
 #: facet that explains its normal (6 sigma at 0.5 mm position noise).
 NEIGHBOUR_RADIUS = 0.003
+#: Contact-facet pairs scored at once by :func:`contact_cost` (about 150 bytes each, so near
+#: 300 MB), whatever the number of poses and of neighbours per facet (157 on the YCB mug).
+PAIRS_PER_BLOCK = 2_000_000
 
 
 @dataclass(frozen=True)
@@ -121,10 +124,19 @@ def contact_cost(model, surface, contacts, poses, position_noise, normal_noise_d
     poses = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
     p, nu = object_frame(poses[:, :3, :3], poses[:, :3, 3], contacts.points, contacts.finger_normals)
     flat, nflat = p.reshape(-1, 3), nu.reshape(-1, 3)
-    # candidates: the facet of the exact closest surface point and its neighbours  -> (Pn, D); each
+    if not len(flat):
+        return np.zeros(len(poses))
+    step = max(PAIRS_PER_BLOCK // surface.neighbours.shape[1], 1)
+    chi2 = np.concatenate([_block_chi2(model, surface, flat[i:i + step], nflat[i:i + step], position_noise,
+                                       normal_noise_deg) for i in range(0, len(flat), step)])
+    return chi2.reshape(len(poses), -1).sum(axis=1)
+
+
+def _block_chi2(model, surface, points, normals, position_noise, normal_noise_deg):
+    """χ² of object-frame contact points and normals (k, 3) -> (k,), one block of contact_cost."""
+    # candidates: the facet of the exact closest surface point and its neighbours  -> (k, D); each
     # contact takes the one that explains it best (near an edge the nearest facet by distance may
     # be the neighbour with the wrong normal)
-    candidates = surface.neighbours[surface.closest_facets(flat)]
-    chi2 = angle_chi2(flat, nflat, candidates, model.triangles, model.planes.normals, position_noise,
+    candidates = surface.neighbours[surface.closest_facets(points)]
+    return angle_chi2(points, normals, candidates, model.triangles, model.planes.normals, position_noise,
                       np.radians(normal_noise_deg))
-    return chi2.reshape(len(poses), -1).sum(axis=1)
