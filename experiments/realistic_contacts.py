@@ -818,7 +818,7 @@ def plot(out_dir):
         ax.set_xlabel("fingertip radius (% of diameter)")
         ax.set_ylabel("top-1 misses, share of grasps")
         ax.set_ylim(bottom=0)
-        ax.set_title("where the truth is lost: ADD-S misses (left), strict (hatched)")
+        ax.set_title("where the truth is lost: ADD-S (left), strict (hatched)")
         ax.legend(fontsize=5.5, frameon=False, loc="upper left")
         ax = axes[1, 1]
         method_style = {"fast": ("o", "tab:blue"), "paper": ("s", "tab:cyan"), "icp-multistart": ("v", "tab:red"),
@@ -829,12 +829,10 @@ def plot(out_dir):
             tot = [pooled(rows, f, method)["all"] for f in fracs]
             if not any(t["n"] for t in tot):
                 continue
-            label = f"{method} ({' / '.join(str(t['n']) for t in tot)} grasps)"
+            notes = grasps["note"][(grasps["method"] == method) & (grasps["ran"] == 0)]
+            label = method_label(method, tot, str(notes[0]) if len(notes) else "")
             if not any(t["ran"] for t in tot):  # a method that never ran has no success rate, not one of 0 %
-                notes = grasps["note"][(grasps["method"] == method) & (grasps["ran"] == 0)]
-                why = str(notes[0]).removeprefix("not run: ").split(" (")[0] if len(notes) and notes[0] else ""
-                ax.plot([], [], marker, color=color, mfc="none", ls="none",
-                        label=f"{method}: not run" + (f" ({why})" if why else ""))
+                ax.plot([], [], marker, color=color, mfc="none", ls="none", label=label)
                 continue
             y = [t["top1_adds"] * t["ran"] / t["n"] if t["ran"] else np.nan for t in tot]  # unfinished: a miss
             ax.plot(x, y, "-" + marker, color=color, label=label)
@@ -847,8 +845,20 @@ def plot(out_dir):
         ax.set_ylabel("top-1 ADD-S (solid), AR_MSSD (dashed)")
         ax.set_title("methods on the same grasps (unfinished: a miss)")
         ax.set_ylim(-0.03, 1.03)
-        ax.legend(fontsize=6, frameon=False)
+        ax.legend(fontsize=5.5, frameon=False, ncol=2, loc="upper center", bbox_to_anchor=(0.5, -0.16))
         return sweep.save_figure(fig, out, NAME)
+
+
+def method_label(method, tot, note=""):
+    """The methods panel's legend entry: the grasps a method was given and, when fewer ran,
+    how many did; a method that ran on none is "not run", with the reason its rows give
+    (note: the first such row's note, e.g. "not run: CHSEL not installed (pip ...)").
+    tot: one dict per radius with "n" (grasps given) and "ran"."""
+    n, ran = sum(t["n"] for t in tot), sum(t["ran"] for t in tot)
+    if not ran:
+        why = note.removeprefix("not run: ").split(" (")[0]
+        return f"{method}: not run" + (f" ({why})" if why else "")
+    return f"{method} ({n} grasps" + (f", {ran} ran)" if ran < n else ")")
 
 
 def summary(out_dir):

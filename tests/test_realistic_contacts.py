@@ -141,6 +141,17 @@ def test_quick_run_writes_every_output(tmp_path):
                          if "→" in cell)
 
 
+def test_the_methods_legend_says_not_run_and_how_many_ran():
+    """A method that ran on no grasp is "not run" with its rows' reason, never a line at 0 %;
+    one that ran on some says how many of the grasps it was given."""
+    label = rc.method_label
+    assert label("fast", [{"n": 100, "ran": 100}, {"n": 100, "ran": 100}]) == "fast (200 grasps)"
+    assert label("paper", [{"n": 20, "ran": 8}, {"n": 20, "ran": 20}]) == "paper (40 grasps, 28 ran)"
+    note = "not run: CHSEL not installed (pip install contactpose[peers])"
+    assert label("chsel", [{"n": 20, "ran": 0}] * 4, note) == "chsel: not run (CHSEL not installed)"
+    assert label("paper", [{"n": 20, "ran": 0}]) == "paper: not run"
+
+
 def test_a_run_of_some_methods_is_checked_before_it_starts(tmp_path, capsys):
     """--set methods=[...]: unknown names, the timed series without the default method, and
     seeds beyond every chosen method's grasps exit 2 with one line; a valid subset passes."""
