@@ -554,17 +554,18 @@ def publish(out, cfg, stages, metas, seconds):
                                               "machine": sweep.machine_description()}, indent=1) + "\n")
 
 
-def expected_minutes(cfg, cache):
+def expected_minutes(cfg, cache, workers):
+    """(model-build minutes, grasp minutes, builds to make) this run expects: each method of
+    ``methods`` on its grasps at its seconds a grasp (config ``estimate``; CHSEL only when
+    installed), the grasps spread over ``workers`` (0 or None: one, in process)."""
     e = cfg["estimate"]
     builds = sum(not (model_files(cache, n)["model"].exists() and current(model_files(cache, n)["model"]))
                  for n in cfg["objects"])
-    cells = len(cfg["objects"]) * len(cfg["radius_fracs"])
-    work = cells * (cfg["seeds"] * (e["fast_seconds"] + e["check_seconds"])
-                    + min(cfg["seeds"], cfg["baseline_grasps"]) * e["baseline_seconds"]
-                    + min(cfg["seeds"], cfg["paper_grasps"]) * e["paper_seconds"]
-                    + min(cfg["seeds"], cfg["published_grasps"]) * e["published_seconds"]
-                    + (min(cfg["seeds"], cfg["chsel_grasps"]) * e["chsel_seconds"] if chsel_peer.available() else 0.0))
-    return builds * e["build_minutes"], work / 60.0 / max(cfg.get("workers") or 1, 1), builds
+    run = [m for m in cfg["methods"] if m != "chsel" or chsel_peer.available()]
+    per_cell = sum(min(cfg["seeds"], cfg[GRASPS_KEY[m]]) * e["seconds"][m] for m in run)
+    per_cell += cfg["seeds"] * e["check_seconds"] if "fast" in run else 0.0
+    work = len(cfg["objects"]) * len(cfg["radius_fracs"]) * per_cell
+    return builds * e["build_minutes"], work / 60.0 / max(workers or 1, 1), builds
 
 
 # --------------------------------------------------------------------------- summary
@@ -926,10 +927,11 @@ def main(argv=None):
     cache = sweep.ROOT / cfg["model_cache"]
     if not args.plot_only:
         out.mkdir(parents=True, exist_ok=True)
-        builds, sweeping, missing = expected_minutes(cfg, cache)
+        workers = sweep.workers_for(args, cfg)
+        builds, sweeping, missing = expected_minutes(cfg, cache, workers)
         print(f"{NAME}: {len(cfg['objects'])} objects x {len(cfg['radius_fracs'])} radii x {cfg['seeds']} grasps; "
               f"expected about {builds + sweeping:.0f} min ({missing} model builds, {builds:.0f} min, one at a time; "
-              f"grasps {sweeping:.0f} min on {cfg.get('workers') or 1} workers)", flush=True)
+              f"grasps {sweeping:.0f} min " + (f"on {workers} workers)" if workers else "in process)"), flush=True)
         start = time.perf_counter()
         stages, metas = [], []
         for name in cfg["objects"]:

@@ -152,6 +152,27 @@ def test_the_methods_legend_says_not_run_and_how_many_ran():
     assert label("paper", [{"n": 20, "ran": 0}]) == "paper: not run"
 
 
+def test_the_expected_time_counts_only_the_methods_that_run(tmp_path, monkeypatch):
+    """expected_minutes: each chosen method's seconds a grasp times its grasps, summed by hand;
+    CHSEL only when installed; spread over the workers (0: one, in process); no build counted
+    for a model already cached (here: none cached, every object built)."""
+    e = {"build_minutes": 2.0, "check_seconds": 0.5,
+         "seconds": {"fast": 3.0, "paper": 2.0, "icp-multistart": 0.1, "scaling-series": 0.8,
+                     "ss-published": 40.0, "ss-published-timed": 3.0, "chsel": 200.0}}
+    cfg = {"objects": ["ycb:013_apple", "ycb:025_mug"], "radius_fracs": [0.0, 0.02], "seeds": 20,
+           "paper_grasps": 5, "baseline_grasps": 20, "published_grasps": 5, "chsel_grasps": 20,
+           "methods": ["chsel"], "estimate": e}
+    monkeypatch.setattr(rc.chsel_peer, "available", lambda: "0.2.1")
+    builds, grasps, missing = rc.expected_minutes(cfg, tmp_path, 0)
+    assert (missing, builds) == (2, 4.0)
+    assert grasps == pytest.approx(2 * 2 * 20 * 200.0 / 60)
+    both = {**cfg, "methods": ["fast", "paper", "chsel"]}
+    per_cell = 20 * (3.0 + 0.5) + 5 * 2.0 + 20 * 200.0
+    assert rc.expected_minutes(both, tmp_path, 2)[1] == pytest.approx(4 * per_cell / 60 / 2)
+    monkeypatch.setattr(rc.chsel_peer, "available", lambda: None)
+    assert rc.expected_minutes(both, tmp_path, 2)[1] == pytest.approx(4 * (20 * 3.5 + 5 * 2.0) / 60 / 2)
+
+
 def test_a_run_of_some_methods_is_checked_before_it_starts(tmp_path, capsys):
     """--set methods=[...]: unknown names, the timed series without the default method, and
     seeds beyond every chosen method's grasps exit 2 with one line; a valid subset passes."""
