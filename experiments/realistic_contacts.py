@@ -676,7 +676,7 @@ def summary_markdown(rows, models, cfg_text, cfg=None):
               "triangles incident to the touched feature). On a model of regions a tuple is \"listed\" when some "
               "distinct pose holds the true region of every contact: \"tree\" then also counts a true tuple that was "
               "joined and posed but grouped under a near-copy led by other regions. experiments/truth_stages.py draws "
-              "the failures again and follows the true placement instead (truth_stages.md).", "",
+              "the failures again and follows the true placement instead, into truth_stages.md beside this file.", "",
               "| r (% diam.) | criterion | failures | " + " | ".join(STAGE_TEXT[s] for s in STAGES) + " |",
               "|---:|---|---:|" + "---:|" * len(STAGES)]
     for frac in fracs:
