@@ -604,10 +604,12 @@ def summary_row(c, sel, obj, frac, method, split):
     row["ar_mssd"] = metrics.ar_mssd(mssd[ran], float(c["diameter_mm"][sel][0])) if k and mssd is not None else np.nan
     for st in STATUSES:
         row[f"status_{st}"] = int(np.sum(c["status"][ran] == st)) if method in ("fast", "paper") else ""
-    row["no_hypothesis"] = float(np.mean(c["num_hypotheses"][ran] == 0)) if k and method in ("fast", "paper") else np.nan
-    row["hypotheses_median"] = pct(c["num_hypotheses"][ran], 50) if method in ("fast", "paper") else np.nan
-    returned = c.get("num_returned", c["num_hypotheses"])   # runs before keep="fitting" listed every hypothesis
-    row["returned_median"] = pct(returned[ran], 50) if method in ("fast", "paper") else np.nan
+    row["no_hypothesis"] = row["hypotheses_median"] = row["returned_median"] = np.nan
+    if method in ("fast", "paper"):   # a run of peers alone has no hypothesis columns
+        row["no_hypothesis"] = float(np.mean(c["num_hypotheses"][ran] == 0)) if k else np.nan
+        row["hypotheses_median"] = pct(c["num_hypotheses"][ran], 50)
+        returned = c.get("num_returned", c["num_hypotheses"])   # runs before keep="fitting" listed every hypothesis
+        row["returned_median"] = pct(returned[ran], 50)
     row["online_ms_median"], row["online_ms_p95"] = pct(c["time_online_ms"][ran], 50), pct(c["time_online_ms"][ran], 95)
     row["redraws"] = int(np.nansum(c["redraws"][sel]))
     row["found_inexact"] = int(np.sum(c["found_exact"][ran] == 0))
@@ -781,7 +783,7 @@ def plot(out_dir):
                  for f in fracs]
             ys = [float(get[(obj, f, "fast", "all")]["top1_strict"]) if (obj, f, "fast", "all") in get else np.nan
                   for f in fracs]
-            sym = get[(obj, fracs[0], "fast", "all")]["symmetry"]
+            sym = next(r["symmetry"] for r in rows if r["object"] == obj)   # a run of peers alone has no "fast"
             ax.plot(x, y, "-o", color=color, ms=3, label=short(obj) + ("*" if sym != "none" else ""))
             ax.plot(x, ys, ":", color=color, lw=0.8)
         ax.set_xlabel("fingertip radius (% of diameter)")

@@ -211,3 +211,22 @@ def test_runs_over_the_same_grasps_merge_and_others_are_refused(tmp_path):
     assert "(normal_noise_deg differ)" in rc.merge_problem(cfg, tmp_path)
     other_run(methods=["chsel"], base_seed=7)
     assert "drew other grasps" in rc.merge_problem(cfg, tmp_path)
+
+
+def test_a_run_of_peers_alone_gets_its_summary_and_figure(tmp_path):
+    """A pass of CHSEL alone (no rows of the default method, so no hypothesis counts) is
+    summarized and drawn after each object: its rows are CHSEL's committed banana grasps, and
+    each radius's strict share and AR_MSSD equal those worked out from the rows directly."""
+    source = Path(__file__).resolve().parent.parent / "results" / "realistic_contacts" / "resume_chsel" / "011_banana"
+    (tmp_path / "timings.csv").write_bytes((source / "timings.csv").read_bytes())
+    rc.plot(tmp_path)
+    assert (tmp_path / "realistic_contacts.png").stat().st_size > 0
+    c = sweep.read_columns(tmp_path / "timings.csv")
+    rows = [r for r in sweep.read_rows(tmp_path / "summary.csv") if r["split"] == "all"]
+    assert {r["method"] for r in rows} == {"chsel"} and len(rows) == len(set(c["radius_frac"]))
+    for r in rows:
+        ran = (c["radius_frac"] == float(r["radius_frac"])) & (c["ran"] == 1)
+        assert int(r["ran"]) == ran.sum()
+        assert float(r["top1_strict"]) == pytest.approx(np.mean(c["top1_strict"][ran]))
+        assert float(r["ar_mssd"]) == pytest.approx(np.mean([np.mean(c["mssd_mm"][ran] < f * c["diameter_mm"][0])
+                                                             for f in np.arange(0.05, 0.51, 0.05)]))
