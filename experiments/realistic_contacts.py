@@ -809,6 +809,7 @@ def plot(out_dir):
         ax = axes[1, 0]
         stage_colors = dict(zip(STAGES, ("tab:red", "tab:orange", "gold", "tab:cyan", "tab:gray")))
         n = np.array([pooled(rows, f, "fast")["all"]["n"] for f in fracs], dtype=float)
+        tallest = 0.0
         for k, crit in enumerate(("top1_adds", "top1_strict")):
             bottom = np.zeros(len(fracs))
             for stage in STAGES:
@@ -817,10 +818,11 @@ def plot(out_dir):
                 ax.bar(x + (k - 0.5) * width, v, width, bottom=bottom, color=stage_colors[stage],
                        hatch="//" if k else None, edgecolor="white", lw=0.3, label=STAGE_TEXT[stage] if k == 0 else None)
                 bottom += v
+            tallest = max(tallest, bottom.max())
         ax.set_xticks(x)
         ax.set_xlabel("fingertip radius (% of diameter)")
         ax.set_ylabel("top-1 misses, share of grasps")
-        ax.set_ylim(bottom=0)
+        ax.set_ylim(0, 1.6 * tallest or 1)  # headroom for the legend
         ax.set_title("where the truth is lost: ADD-S (left), strict (hatched)")
         ax.legend(fontsize=5.5, frameon=False, loc="upper left")
         ax = axes[1, 1]
