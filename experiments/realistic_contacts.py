@@ -539,19 +539,41 @@ def finished(sw, stage):
 
 # --------------------------------------------------------------------------- publishing
 
-def publish(out, cfg, stages, metas, seconds):
-    """grasps.csv / timings.csv (the objects' sweeps concatenated), models.csv, config.json, run.json."""
+def publish(out, cfg, stages, metas, seconds, *, workers, ran_here, earlier):
+    """grasps.csv / timings.csv (the objects' sweeps concatenated), models.csv, config.json, run.json.
+
+    ``earlier`` is (run.json, models.csv rows by object) as ``out`` held them before this call
+    ran anything: an object none of whose grasps ran here (``ran_here``) keeps its model row, and
+    a call that ran no grasp at all (a re-publication, say with another pass merged) keeps the
+    record of the run that made the rows (library commit, machine, seconds, workers) and adds its
+    own as ``republished``. run.json also carries each merged pass's run.json."""
     for src, dst in ((sweep.RESULTS_CSV, "grasps.csv"), (sweep.TIMINGS_CSV, "timings.csv")):
         rows = [r for st in stages if (Path(st) / src).exists() for r in sweep.read_rows(Path(st) / src)]
         sweep.write_rows(out / dst, rows)
-    sweep.write_rows(out / "models.csv", [{k: v for k, v in m.items() if k not in ("build_stage_s", "warnings",
-                                                                                    "library")}
-                                           | {"commit": m["library"]["commit"][:12]} for m in metas])
+    earlier_run, earlier_models = earlier
+    sweep.write_rows(out / "models.csv", [earlier_models[m["object"]]
+                                           if m["object"] in earlier_models and m["object"] not in ran_here
+                                           else model_row(m) for m in metas])
     (out / "config.json").write_text(json.dumps(cfg, indent=1) + "\n")
-    (out / "run.json").write_text(json.dumps({"experiment": NAME, "seconds": round(seconds, 1),
-                                              "objects_done": [m["object"] for m in metas],
-                                              "workers": cfg.get("workers"), "library": library_version(),
-                                              "machine": sweep.machine_description()}, indent=1) + "\n")
+    record = {"experiment": NAME, "seconds": round(seconds, 1), "workers": workers,
+              "library": library_version(), "machine": sweep.machine_description()}
+    if earlier_run and not ran_here:
+        record = {**earlier_run, "republished": {k: record[k] for k in ("library", "machine")}}
+    record |= {"objects_done": [m["object"] for m in metas],
+               "merged_runs": {root: sweep.read_run(sweep.ROOT / root / NAME) for root in cfg["merge_runs"]}}
+    (out / "run.json").write_text(json.dumps(record, indent=1) + "\n")
+
+
+def model_row(meta):
+    """models.csv row of an object's model meta: its numbers and the commit that built it."""
+    return ({k: v for k, v in meta.items() if k not in ("build_stage_s", "warnings", "library")}
+            | {"commit": meta["library"]["commit"][:12]})
+
+
+def earlier_publication(out):
+    """(run.json, models.csv rows by object) of what ``out`` holds now ({} each if nothing)."""
+    models = out / "models.csv"
+    return sweep.read_run(out), {r["object"]: r for r in sweep.read_rows(models)} if models.exists() else {}
 
 
 def expected_minutes(cfg, cache, workers):
@@ -932,25 +954,29 @@ def main(argv=None):
     if not args.plot_only:
         out.mkdir(parents=True, exist_ok=True)
         workers = sweep.workers_for(args, cfg)
-        builds, sweeping, missing = expected_minutes(cfg, cache, workers)
-        print(f"{NAME}: {len(cfg['objects'])} objects x {len(cfg['radius_fracs'])} radii x {cfg['seeds']} grasps; "
+        todo = [n for n in cfg["objects"]
+                if args.fresh or not finished(make_sweep(cfg, n, cache), out / "_scratch" / "sweeps" / stem(n))]
+        builds, sweeping, missing = expected_minutes({**cfg, "objects": todo}, cache, workers)
+        print(f"{NAME}: {len(cfg['objects'])} objects ({len(todo)} to run) x {len(cfg['radius_fracs'])} radii x {cfg['seeds']} grasps; "
               f"expected about {builds + sweeping:.0f} min ({missing} model builds, {builds:.0f} min, one at a time; "
               f"grasps {sweeping:.0f} min " + (f"on {workers} workers)" if workers else "in process)"), flush=True)
         start = time.perf_counter()
-        stages, metas = [], []
+        stages, metas, ran_here, earlier = [], [], set(), earlier_publication(out)
         for name in cfg["objects"]:
             sw = make_sweep(cfg, name, cache)
             stage = out / "_scratch" / "sweeps" / stem(name)
             stages.append(stage)
-            done = not args.fresh and finished(sw, stage)
+            done = name not in todo
             meta = model_files(cache, name)["meta"]
             metas.append(json.loads(meta.read_text()) if done and meta.exists() else prepare(name, cache))
             if not done:
+                ran_here.add(name)
                 sweep.run_logged(sw, stage, args, cfg)
                 if not cfg["keep_models"]:
                     model_files(cache, name)["model"].unlink(missing_ok=True)
             stages += [merge_dir(name, root) for root in cfg["merge_runs"]]
-            publish(out, cfg, stages, metas, time.perf_counter() - start)
+            publish(out, cfg, stages, metas, time.perf_counter() - start, workers=workers, ran_here=ran_here,
+                    earlier=earlier)
             plot(out)
             log.info("%s: done, %.0f min so far", name, (time.perf_counter() - start) / 60)
     return sweep.finish(out, plot, summary)

@@ -1,6 +1,7 @@
 """experiments/realistic_contacts.py: the exact "found" test and the incident facets on a small
 built-in model; the quick run (YCB model builds, minutes) is marked slow."""
 
+import json
 import sys
 from pathlib import Path
 
@@ -230,3 +231,35 @@ def test_a_run_of_peers_alone_gets_its_summary_and_figure(tmp_path):
         assert float(r["top1_strict"]) == pytest.approx(np.mean(c["top1_strict"][ran]))
         assert float(r["ar_mssd"]) == pytest.approx(np.mean([np.mean(c["mssd_mm"][ran] < f * c["diameter_mm"][0])
                                                              for f in np.arange(0.05, 0.51, 0.05)]))
+
+
+def test_a_republication_keeps_the_record_of_the_run_that_made_the_rows(tmp_path):
+    """publish with no grasp run in the call (a pass merged later): run.json keeps the earlier
+    run's commit, machine and seconds and adds the call's own as "republished"; models.csv keeps
+    the earlier build row though the cache's meta changed since (another pass rebuilt the
+    model); a merged pass's run.json is carried. With the object run in the call, both are new."""
+    out, other = tmp_path / "realistic_contacts", tmp_path / "other"
+    (other / rc.NAME).mkdir(parents=True)
+    (other / rc.NAME / "run.json").write_text(json.dumps({"seconds": 8.1}))
+    out.mkdir()
+    (out / "run.json").write_text(json.dumps({"experiment": rc.NAME, "seconds": 4324.9, "workers": 2,
+                                              "library": {"commit": "a" * 40}, "machine": {"cpu": "Xeon"}}))
+    sweep.write_rows(out / "models.csv", [{"object": "ycb:011_banana", "build_s": 9.0, "commit": "a" * 12}])
+    meta = {"object": "ycb:011_banana", "build_s": 3.0, "build_stage_s": {}, "warnings": [],
+            "library": {"commit": "b" * 40}}
+    cfg = {"merge_runs": [str(other)]}
+
+    def publish(ran_here):
+        rc.publish(out, cfg, [], [meta], 17.8, workers=0, ran_here=ran_here, earlier=rc.earlier_publication(out))
+        return json.loads((out / "run.json").read_text()), sweep.read_rows(out / "models.csv")
+
+    run, models = publish(set())
+    assert (run["seconds"], run["workers"], run["library"], run["machine"]) == (4324.9, 2, {"commit": "a" * 40},
+                                                                               {"cpu": "Xeon"})
+    assert run["republished"]["library"] == rc.library_version()
+    assert run["merged_runs"] == {str(other): {"seconds": 8.1}} and run["objects_done"] == ["ycb:011_banana"]
+    assert [(m["build_s"], m["commit"]) for m in models] == [("9.0", "a" * 12)]
+    run, models = publish({"ycb:011_banana"})
+    assert (run["seconds"], run["workers"], "republished" in run) == (17.8, 0, False)
+    assert run["library"] == rc.library_version() and run["machine"] == sweep.machine_description()
+    assert [(m["build_s"], m["commit"]) for m in models] == [("3.0", "b" * 12)]
