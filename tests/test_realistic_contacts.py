@@ -263,3 +263,24 @@ def test_a_republication_keeps_the_record_of_the_run_that_made_the_rows(tmp_path
     assert (run["seconds"], run["workers"], "republished" in run) == (17.8, 0, False)
     assert run["library"] == rc.library_version() and run["machine"] == sweep.machine_description()
     assert [(m["build_s"], m["commit"]) for m in models] == [("3.0", "b" * 12)]
+
+
+def test_the_methods_are_compared_on_the_grasps_every_method_was_given(tmp_path):
+    """The banana's rows of both committed passes (ours on 100 grasps per radius, the peers on
+    the first 20): the methods' table and panel count every method on those 20 per radius, and
+    their shares equal those worked out from the rows of those grasps directly."""
+    results = Path(__file__).resolve().parent.parent / "results" / "realistic_contacts"
+    rows = [r for d in ("resume", "resume_chsel") for r in sweep.read_rows(results / d / "011_banana" / "timings.csv")]
+    sweep.write_rows(tmp_path / "timings.csv", rows)
+    rc.plot(tmp_path)
+    c = sweep.read_columns(tmp_path / "timings.csv")
+    summary = [r for r in sweep.read_rows(tmp_path / "summary.csv") if r["split"] == "same grasps"]
+    assert {r["method"] for r in summary} == set(rc.METHODS) and len(summary) == 4 * len(rc.METHODS)
+    for r in summary:
+        sel = (c["method"] == r["method"]) & (c["radius_frac"] == float(r["radius_frac"])) & (c["seed"] < 20)
+        ran = sel & (c["ran"] == 1)
+        assert (int(r["grasps"]), int(r["ran"])) == (20, ran.sum())
+        assert float(r["top1_strict"]) == pytest.approx(np.mean(c["top1_strict"][ran]))
+    table = (tmp_path / "summary.md").read_text().split("## Methods on the same grasps")[1]
+    fast = [line for line in table.splitlines() if line.startswith("| ") and " | fast | " in line]
+    assert len(fast) == 4 and all(" / 20 | " in line for line in fast)
