@@ -965,17 +965,17 @@ def main(argv=None):
     if not args.plot_only:
         out.mkdir(parents=True, exist_ok=True)
         workers = sweep.workers_for(args, cfg)
-        todo = [n for n in cfg["objects"]
-                if args.fresh or not finished(make_sweep(cfg, n, cache), out / "_scratch" / "sweeps" / stem(n))]
+        sweeps = {n: make_sweep(cfg, n, cache) for n in cfg["objects"]}
+        stage_of = {n: out / "_scratch" / "sweeps" / stem(n) for n in cfg["objects"]}
+        todo = [n for n, sw in sweeps.items() if args.fresh or not finished(sw, stage_of[n])]
         builds, sweeping, missing = expected_minutes({**cfg, "objects": todo}, cache, workers)
         print(f"{NAME}: {len(cfg['objects'])} objects ({len(todo)} to run) x {len(cfg['radius_fracs'])} radii x {cfg['seeds']} grasps; "
               f"expected about {builds + sweeping:.0f} min ({missing} model builds, {builds:.0f} min, one at a time; "
               f"grasps {sweeping:.0f} min " + (f"on {workers} workers)" if workers else "in process)"), flush=True)
         start = time.perf_counter()
         stages, metas, ran_here, earlier = [], [], set(), earlier_publication(out)
-        for name in cfg["objects"]:
-            sw = make_sweep(cfg, name, cache)
-            stage = out / "_scratch" / "sweeps" / stem(name)
+        for name, sw in sweeps.items():
+            stage = stage_of[name]
             stages.append(stage)
             done = name not in todo
             meta = model_files(cache, name)["meta"]

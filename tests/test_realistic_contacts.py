@@ -201,7 +201,7 @@ def test_runs_over_the_same_grasps_merge_and_others_are_refused(tmp_path):
             record = rc.make_sweep({**cfg, **changes}, name, tmp_path).config_record()
             d = rc.merge_dir(name, tmp_path)
             d.mkdir(parents=True, exist_ok=True)
-            (d / sweep.CONFIG_JSON).write_text(__import__("json").dumps(record))
+            (d / sweep.CONFIG_JSON).write_text(json.dumps(record))
 
     assert "no run of" in rc.merge_problem(cfg, tmp_path)
     other_run(methods=["chsel"], seeds=1, chsel_grasps=1)
