@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: setup system-deps lint demo test test-all results results-quick bench clean
+.PHONY: setup system-deps lint demo test test-all results results-quick bench docs clean
 
 # Open3D's Linux wheel loads libusb-1.0 at import time.
 system-deps:
@@ -15,6 +15,15 @@ system-deps:
 	    apt-get update -qq >/dev/null && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq libusb-1.0-0 >/dev/null; \
 	  else \
 	    echo "contactpose: Open3D needs the system library libusb-1.0-0; install it with: sudo apt-get install libusb-1.0-0" >&2; \
+	  fi; \
+	fi
+	@# Headless Chromium for the test that opens the 3D view (it skips, saying why, without it).
+	@if ! command -v chromium >/dev/null; then \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null; then \
+	    echo "installing chromium (the 3D view's browser test)"; \
+	    apt-get update -qq >/dev/null && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null; \
+	  else \
+	    echo "contactpose: the 3D view's browser test needs Chromium: sudo apt-get install chromium" >&2; \
 	  fi; \
 	fi
 
@@ -42,6 +51,10 @@ test: setup lint
 
 test-all: setup lint
 	$(PY) -m pytest -q -p no:cacheprovider --durations=15
+
+# The docs site (mkdocs), built strictly: a broken reference or link fails.
+docs: setup
+	$(VENV)/bin/mkdocs build --strict --site-dir site
 
 bench: setup
 	$(PY) -m contactpose bench --out results/bench
