@@ -122,6 +122,9 @@ class _Trials:
             warnings.simplefilter("ignore")
             arrays = stages.find_hypotheses(self.model, contacts, tolerance, prior=self.prior,
                                             max_outliers=max_outliers, deadline=deadline, progress=False)[0]
+            if deadline.hit:  # a cut answer proves nothing: spend no grace on it
+                self.budget.hit = True
+                return None
             arrays = stages.distinct(self.model, arrays, tolerance, deadline, merge_twins=self.prior is None)
             _, status, _ = stages.classify(self.model, contacts, arrays, tolerance, deadline=deadline)
         if deadline.hit:

@@ -24,6 +24,8 @@ import numpy as np
 
 from contactpose.costs.association import fitting_members, nearest_fit_facets
 from contactpose.geometry.metrics import rms_displacement
+from contactpose.model.memory import ONLINE_BYTES, gib, online_fits
+from contactpose.model.units import unit_table_cost
 from contactpose.options import DEFAULT_REFINE, OUTLIER_PENALTY, fit_threshold
 from contactpose.progress import Deadline
 from contactpose.scoring import evidence, refine
@@ -60,12 +62,19 @@ TREE_SHARE = 0.25
 #: Seconds the distinct-pose grouping may always take, even once the time limit has passed;
 #: past both, the rows not yet grouped are listed as they are (status "time_limit").
 GROUPING_GRACE = 2.0
+#: ... but at most this share of the time limit.
+GRACE_SHARE = 0.05
 #: A best surface pose that does not fit within noise has up to NEAR_COPY_REFITS of its
 #: near-copies fitted too, those within NEAR_COPY_REACH near-copy radii of it (_refit_near_copies).
 NEAR_COPY_REFITS = 64
 NEAR_COPY_REACH = 2.0
 #: Hypotheses posed and ranked at a time (the grain of their deadline checks).
 POSE_CHUNK = 65_536
+#: Copies of the ranked arrays a search holds at its peak (the chunks, their merge, its order).
+ROW_COPIES = 3
+#: Seconds a posed hypothesis costs after the chunks (merge, polish, distinct poses), reserved
+#: before the deadline: about 2 µs measured on 660 k hypotheses of a 4,212-facet mesh; doubled.
+POST_SECONDS_PER_ROW = 4e-6
 #: With keep="fitting", a search none of whose hypotheses fits within noise lists its best this many.
 POOR_FIT_LISTED = 10
 #: The search's stage times, in seconds, as every Result's timing starts.
@@ -101,7 +110,9 @@ def find_hypotheses(model, contacts, tolerance, *, solver="closed-form", prior=N
     arrays = timing = grown = None
     widened = ""
     for fingers, gates, factor in attempts:
-        if factor > 1.0 and (len(arrays.cost) or deadline.passed or contacts.spread > model.diameter + gates.distance):
+        if timing is not None and deadline.passed:
+            break
+        if factor > 1.0 and (len(arrays.cost) or contacts.spread > model.diameter + gates.distance):
             break
         found, more, sub_tree = search(model, contacts.permuted(fingers), gates, solver=solver, prior=prior,
                                        deadline=deadline, progress=progress, tree=tree if timing is None else None)
@@ -116,6 +127,9 @@ def find_hypotheses(model, contacts, tolerance, *, solver="closed-form", prior=N
             widened = (f"nothing matched at the stated noise: the pair tolerances were widened {factor:g}x "
                        f"(distance ±{gates.distance:.3g}, angle ±{np.degrees(gates.angle):.3g}°)")
     if _edges_may_help(model, contacts, tolerance, arrays, deadline, finger_radius):
+        skipped = _edges_unaffordable(model, deadline)
+        if skipped:
+            return arrays, timing, grown, skipped
         found = edge_hypotheses(model, contacts, tolerance, timing, prior=prior, deadline=deadline, progress=progress)
         fitting = np.flatnonzero(found.chi2 <= fit_threshold(contacts.n))
         if len(fitting):
@@ -123,6 +137,21 @@ def find_hypotheses(model, contacts, tolerance, *, solver="closed-form", prior=N
             arrays = _first_of_each_tuple(arrays)
             widened = EDGES_NOTE
     return arrays, timing, grown, widened
+
+
+def _edges_unaffordable(model, deadline):
+    """Why the search over facets, sharp edges and vertices cannot run on this model now, or
+    "": its unit table, built on first use, would need more than the online memory guard
+    (model.memory.online_fits) or more time than is left. A table built once is free."""
+    if "unit_table" in vars(model):
+        return ""
+    n = len(model.units)
+    need, seconds = unit_table_cost(n)
+    if online_fits(need) and seconds <= deadline.remaining():
+        return ""
+    return (f"the search over sharp edges did not run: its table of {n:,} facets, edges and vertices would take "
+            f"about {gib(need)} GiB and {seconds:.3g} s to build (the guard: {gib(ONLINE_BYTES)} GiB, "
+            f"{deadline.remaining():.3g} s left)")
 
 
 def with_widened_normals(model, contacts, arrays, tolerance, timing, *, finger_radius, prior=None, deadline=None,
@@ -218,14 +247,15 @@ def search(model, contacts, tolerance, *, solver="closed-form", prior=None, dead
     if grown.units == "patches":
         facets = _members_in_chunks(model, contacts, facets, tolerance, prior, deadline)
     timing.update(tree=timing["tree"] + time.perf_counter() - start, pose=0.0, rank=0.0)
-    arrays = None
+    parts, chunk_start = [], time.perf_counter()
     for lo in range(0, max(len(facets), 1), POSE_CHUNK):
-        if lo and deadline.passed:
+        if lo and (deadline.passed or _chunks_spent(parts, deadline, time.perf_counter() - chunk_start)):
             break
-        part = _pose_and_rank(model, contacts, facets[lo:lo + POSE_CHUNK], tolerance, solver, prior, deadline,
-                              progress, timing)
-        arrays = part if arrays is None else arrays.merged(part)
+        chunk_start = time.perf_counter()
+        parts.append(_pose_and_rank(model, contacts, facets[lo:lo + POSE_CHUNK], tolerance, solver, prior, deadline,
+                                    progress, timing))
     start = time.perf_counter()
+    arrays = parts[0].merged(*parts[1:]) if len(parts) > 1 else parts[0]
     arrays = polish_hypotheses(model, contacts, arrays, tolerance)
     timing["pose"] += time.perf_counter() - start
     return arrays, timing, None if tree_deadline.hit else grown
@@ -295,7 +325,8 @@ def distinct(model, arrays, tolerance, deadline, merge_twins=False):
     """One hypothesis per distinct pose (scoring.classes.distinct_poses; merge_twins : the
     symmetric twins of a placement count as one pose), within what is left of the deadline (a
     progress.Deadline), or GROUPING_GRACE seconds if more; a cut there counts as the deadline's."""
-    grouping = Deadline(None if deadline.seconds is None else max(deadline.remaining(), GROUPING_GRACE))
+    grace = None if deadline.seconds is None else min(GROUPING_GRACE, GRACE_SHARE * deadline.seconds)
+    grouping = Deadline(None if deadline.seconds is None else max(deadline.remaining(), grace))
     arrays = distinct_poses(model, arrays, tolerance.position_noise, grouping, merge_twins)[0]
     deadline.hit |= grouping.hit
     return arrays
@@ -444,6 +475,24 @@ def _pose_and_rank(model, contacts, facets, tolerance, solver, prior, deadline, 
     timing["pose"] += posed - start
     timing["rank"] += time.perf_counter() - posed
     return arrays
+
+
+def _chunks_spent(parts, deadline, seconds):
+    """Whether the posed chunks ``parts`` (HypothesisArrays), the last of which took
+    ``seconds``, leave no room for one more: with it, the answer would pass the online memory
+    guard (model.memory.online_fits, the ranked arrays held about ROW_COPIES times over), or
+    the deadline once it and the merge and polish (POST_SECONDS_PER_ROW a row) ran. Either
+    cut counts as the deadline's, so the answer says it is truncated."""
+    rows = sum(len(p.cost) for p in parts) + POSE_CHUNK
+    nbytes = sum(_nbytes(p) for p in parts) * rows / max(rows - POSE_CHUNK, 1)
+    if not online_fits(ROW_COPIES * nbytes) or deadline.remaining() < seconds + POST_SECONDS_PER_ROW * rows:
+        deadline.hit = True
+    return deadline.hit
+
+
+def _nbytes(arrays):
+    """Bytes held by the arrays of a HypothesisArrays."""
+    return sum(a.nbytes for a in (*vars(arrays).values(), *vars(arrays.fit).values()) if isinstance(a, np.ndarray))
 
 
 def _members_in_chunks(model, contacts, tuples, tolerance, prior, members_deadline=None):

@@ -38,9 +38,10 @@ class PoseFit:
         """The fits of the hypotheses ``idx``."""
         return PoseFit(*(getattr(self, f.name)[idx] for f in fields(self)))
 
-    def concat(self, other):
-        """Both sets of fits, self's first."""
-        return PoseFit(*(np.concatenate([getattr(self, f.name), getattr(other, f.name)]) for f in fields(self)))
+    def concat(self, *others):
+        """These fits and the others', self's first."""
+        parts = (self,) + others
+        return PoseFit(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(self)))
 
     @property
     def underdetermined(self):
@@ -206,14 +207,15 @@ class HypothesisArrays:
                                 self.residuals[idx], self.fit.take(idx), pick(self.covariance),
                                 pick(self.probability))
 
-    def merged(self, other):
-        """Both sets of hypotheses in one ranking (by cost); covariance and probability are
-        kept where both sets have them."""
-        both = (lambda a, b: None if a is None or b is None else np.concatenate([a, b]))
-        joined = HypothesisArrays(*(np.concatenate([a, b]) for a, b in zip(
-            (self.facets, self.poses, self.cost, self.chi2, self.residuals),
-            (other.facets, other.poses, other.cost, other.chi2, other.residuals))), self.fit.concat(other.fit),
-            both(self.covariance, other.covariance), both(self.probability, other.probability))
+    def merged(self, *others):
+        """These hypotheses and the others' in one ranking (by cost, stable: self's first on a
+        tie); covariance and probability are kept where every set has them."""
+        parts = (self,) + others
+        every = (lambda name: [getattr(p, name) for p in parts])
+        kept = (lambda name: None if any(a is None for a in every(name)) else np.concatenate(every(name)))
+        joined = HypothesisArrays(*(np.concatenate(every(name)) for name in ("facets", "poses", "cost", "chi2",
+                                                                                "residuals")),
+                                  self.fit.concat(*(p.fit for p in others)), kept("covariance"), kept("probability"))
         return joined.take(np.argsort(joined.cost, kind="stable"))
 
     def widened(self, fingers, n, penalty):

@@ -13,6 +13,9 @@ from contactpose.io.modelfile import free_memory
 
 #: An estimate fits when it needs at most this fraction of the free memory.
 FIT_FRACTION = 0.8
+#: Bytes one localize may allocate beyond the loaded model: a stage whose estimate exceeds
+#: it (or the free memory's FIT_FRACTION) does not run, and the answer says so.
+ONLINE_BYTES = 2**30
 
 
 def gib(nbytes):
@@ -23,6 +26,11 @@ def gib(nbytes):
 def budget():
     """Bytes an estimate may need: FIT_FRACTION of the free memory."""
     return FIT_FRACTION * free_memory()
+
+
+def online_fits(need):
+    """Whether an online stage may allocate ``need`` bytes: at most ONLINE_BYTES and budget()."""
+    return need <= min(ONLINE_BYTES, budget())
 
 
 def check_fits(need, what, advice):
