@@ -75,9 +75,8 @@ def test_bad_options_exit_2_before_any_work(tmp_path, monkeypatch, capsys, argv,
 
 
 def test_default_models_are_the_ones_documented():
-    """The README's synopsis (or the section written for it) names bench.DEFAULT_MODELS."""
-    section = ROOT / "README_CLI_SECTION.md"
-    text = (section if section.exists() else ROOT / "README.md").read_text()
+    """The command line reference's synopsis names bench.DEFAULT_MODELS."""
+    text = (ROOT / "docs" / "reference" / "cli.md").read_text()
     synopsis = re.search(r"contactpose bench \[--models ([\w: ]+)\]", text)
     assert synopsis and tuple(synopsis.group(1).split()) == bench.DEFAULT_MODELS
 

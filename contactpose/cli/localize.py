@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 
+from contactpose import view
 from contactpose.cli.common import (
     EXIT_OK,
     EXIT_STRICT,
@@ -79,6 +80,10 @@ def register(sub):
                    help=f"exit with code {EXIT_STRICT} when the answer is empty or poor (status "
                         f"{' or '.join(DIAGNOSED)}; the hint and the JSON's diagnosis name the cause)")
     p.add_argument("-o", "--output", metavar="OUT.json", help="write the result as JSON")
+    p.add_argument("--html", metavar="PAGE.html",
+                   help="write a 3D page of the answer that opens offline in a browser: the object at the best "
+                        "placement, the contacts and their normals, the fingertips (with --finger-radius), the other "
+                        "placements (toggled in its legend) and the directions a pose family leaves free")
     p.set_defaults(func=run)
 
 
@@ -105,8 +110,10 @@ def warn_options_in_vain(args):
 
 
 def run(args):
-    """Localize, print the result, optionally write it as JSON; 0 on success (3 with --strict
-    and an empty or poor answer)."""
+    """Localize, print the result, optionally write it as JSON and as a 3D page; 0 on success
+    (3 with --strict and an empty or poor answer)."""
+    if args.html:
+        view.check_page_path(args.html)  # before the model is built
     model = model_or_mesh(args.model, fix_normals=args.fix_normals)
     contacts = jsonfiles.read_contacts(args.contacts)
     prior = jsonfiles.read_prior(args.prior) if args.prior else None
@@ -121,6 +128,8 @@ def run(args):
     warn_options_in_vain(args)  # after the checks: bad input gets its one error line only
     if args.output:
         jsonfiles.write_json(args.output, result.to_dict())
+    if args.html:
+        result.to_html(args.html, finger_radius=args.finger_radius)
     print_result(result, contacts.n)
     return EXIT_STRICT if args.strict and result.status in DIAGNOSED else EXIT_OK
 

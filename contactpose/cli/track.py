@@ -7,6 +7,7 @@ import textwrap
 
 import numpy as np
 
+from contactpose import view
 from contactpose.cli.common import add_noise_options, add_parser, model_or_mesh, warn_in_vain
 from contactpose.errors import ContactPoseError, check_count
 from contactpose.geometry.metrics import rotation_error_deg, translation_error
@@ -39,6 +40,12 @@ def register(subparsers):
     p.add_argument("-o", "--output", metavar="OUT.json", help="write the trajectory and the tracks as JSON")
     p.add_argument("--plot", metavar="OUT.png", help="plot the pose error over the steps, modulo the object's "
                                                      "symmetry and raw (needs true_pose)")
+    p.add_argument("--html", metavar="PAGE.html",
+                   help="write a 3D page that opens offline in a browser, with a slider over the steps: the best "
+                        "track's pose, every contact so far carried with the object (this step's touch with its "
+                        "normals) and the true pose where the sequence gives it")
+    p.add_argument("--finger-radius", type=float, metavar="R",
+                   help="with --html: draw fingertips of this radius on each step's touch (default: none)")
     p.set_defaults(func=run)
 
 
@@ -49,6 +56,10 @@ def run(args):
         warn_in_vain("--seed", "without --association-samples")
     if args.association_samples and not args.output:
         warn_in_vain("--association-samples", "without -o (the covariances go into OUT.json)")
+    if args.finger_radius is not None and not args.html:
+        warn_in_vain("--finger-radius", "without --html (it draws the fingertips)")
+    if args.html:
+        view.check_page_path(args.html)  # before the model is built
     model = model_or_mesh(args.model)
     steps = jsonfiles.read_sequence(args.sequence)
     group = symmetry(model)
@@ -60,9 +71,12 @@ def run(args):
     tracks = TrackSet(model, first, [(h.facets, h.pose) for h in result.hypotheses], result.tolerance,
                       max_tracks=args.max_tracks, seeder=None if args.no_reseed else relocalizer(model, result.tolerance))
     rows = [_row(0, tracks, truth, group)]
+    shown = [_shown(tracks, first.n, truth)] if args.html else None
     for k, (contacts, motion, truth) in enumerate(steps[1:], 1):
         tracks.add(contacts, hand_motion=motion)
         rows.append(_row(k, tracks, truth, group))
+        if args.html:
+            shown.append(_shown(tracks, contacts.n, truth))
     metres = _in_metres(args.model)
     for before, r in zip([0] + [r["reseeds"] for r in rows], rows):
         reseeded = " (reseeded: no track explained the touch)" if r["reseeds"] > before else ""
@@ -76,7 +90,33 @@ def run(args):
                                                             symmetry="" if group.trivial else group.describe()))
     if args.plot:
         _plot(rows, args.plot, group, metres)
+    if args.html:
+        _page(model, shown, rows, group, metres, args)
     return 0
+
+
+def _shown(tracks, latest, truth):
+    """What the page shows of a step: the best track's pose, every touch so far carried with
+    it to that pose (PoseTrack.seen_now), the last ``latest`` contacts this step's, the true
+    pose (or None). -> view.TrackStep without its caption"""
+    seen, _ = tracks.best.seen_now()
+    return view.TrackStep(tracks.best.pose, seen.points, seen.finger_normals, latest, truth)
+
+
+def _page(model, shown, rows, group, metres, args):
+    """Write the page of --html: a slider over the steps, each captioned as its printed line."""
+    steps = [view.TrackStep(s.pose, s.points, s.finger_normals, s.latest, s.true_pose,
+                            _caption(r, len(s.points), group, metres)) for s, r in zip(shown, rows)]
+    fig = view.track_figure(model.vertices, model.faces, steps, finger_radius=args.finger_radius,
+                            title=f"{args.model}: tracked over {len(steps)} steps")
+    view.write_html(fig, args.html)
+
+
+def _caption(row, seen, group, metres):
+    """A step's line on the page: its printed line's counts and errors, and ``seen``, the
+    contacts so far."""
+    error = _error_text(row, group, metres).strip()
+    return f"step {row['step']}: {row['tracks']} track(s), {seen} contacts so far" + (f"; {error}" if error else "")
 
 
 def _row(step, tracks, truth, group):

@@ -119,7 +119,8 @@ class TouchSession:
         return Result("underdetermined", HypothesisList(_empty_arrays(1)), stage_times(0.0), self.options.get("method", "fast"),
                       self.options.get("solver") or "closed-form", self.tolerance,
                       f"one contact: every one of the {units[1]} {units[0]} can carry it; add another contact",
-                      num_hypotheses=units[1], tree=SearchTree(self.contacts, self.tolerance, units[0], tuples))
+                      num_hypotheses=units[1], tree=SearchTree(self.contacts, self.tolerance, units[0], tuples),
+                      model=self.model, contacts=self.contacts)
 
     def _units(self):
         """(what the search runs over, how many): ("patches", P) or ("facets", m)."""
@@ -156,10 +157,12 @@ class TouchSession:
         of every contact at its own smoothed pose, cost = sequential χ², covariance of the last
         pose (and the best track's association covariance as its sample_covariance, when
         asked); status "ok" with one track, else "ambiguous"; timing (seconds) since
-        ``clock`` (time.perf_counter()), of which ``track_s`` in the tracks."""
-        parts = []
+        ``clock`` (time.perf_counter()), of which ``track_s`` in the tracks; contacts : the best
+        track's touches, each carried to its current pose (PoseTrack.seen_now)."""
+        parts, seen_all = [], []
         for track in self.tracks.tracks:
             seen, facets = track.seen_now()
+            seen_all.append(seen)
             T = track.pose
             fit = PoseFit(T[None, :3, :3], T[None, :3, 3], np.zeros((1, 3, 3)), np.zeros((1, 3), bool),
                           np.zeros((1, 3)), np.zeros(1, bool))
@@ -176,7 +179,7 @@ class TouchSession:
         timing = stage_times(time.perf_counter() - clock, track=track_s)
         extra = {"tracking": True, "touches": len(self.history) + 1, "reseeds": self.tracks.reseeds}
         return Result("ok" if k == 1 else "ambiguous", listed, timing, "fast", "factor-graph",
-                      self.tolerance, hint, num_hypotheses=k, extra=extra)
+                      self.tolerance, hint, num_hypotheses=k, extra=extra, model=self.model, contacts=seen_all[0])
 
 
 def stage_times(total, **more):
