@@ -5,7 +5,7 @@ Object Pose from Contact Measurements in 3-D Grasping* (ICRA 2003), made exact
 and faster, with the paper's own method kept as ``method="paper"``.
 """
 
-from contactpose.contacts import Contacts, Tolerance
+from contactpose.contacts import Contacts, FreeSpace, Tolerance
 from contactpose.errors import ContactPoseError
 from contactpose.localize import localize
 from contactpose.model.object_model import ObjectModel
@@ -14,6 +14,6 @@ from contactpose.sim import objects
 from contactpose.tracking.session import TouchSession
 from contactpose.types import PosePrior, Result
 
-__all__ = ["ContactPoseError", "Contacts", "ObjectModel", "PosePrior", "Result", "Tolerance", "TouchSession",
+__all__ = ["ContactPoseError", "Contacts", "FreeSpace", "ObjectModel", "PosePrior", "Result", "Tolerance", "TouchSession",
            "localize", "objects", "simulate"]
 __version__ = "0.1.0"

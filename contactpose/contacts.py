@@ -184,3 +184,77 @@ class Tolerance:
     def per_contact_bounds(self):
         """Error bounds per contact (position, angle) that keep every pair within tolerance."""
         return 0.5 * self.distance, 0.5 * self.angle
+
+
+def _as_radii(name, values, k):
+    """values -> (k,) float64, finite and >= 0, else ContactsError naming ``name``."""
+    try:
+        arr = np.asarray(values, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ContactsError(f"{name} must be numbers of shape ({k},), got {values!r:.80}") from None
+    if arr.shape != (k,):
+        raise ContactsError(f"{name} must have shape ({k},), one radius per row, got shape {arr.shape}")
+    bad = ~(np.isfinite(arr) & (arr >= 0))
+    if bad.any():
+        i = np.flatnonzero(bad)[0]
+        raise ContactsError(f"{name} entry {i} is {float(arr[i])!r}; every radius must be a finite length >= 0")
+    return arr
+
+
+def _as_tuple(name, value, parts):
+    """``value`` as a tuple of len(parts) arrays, else ContactsError naming ``name`` and ``parts``."""
+    if isinstance(value, np.ndarray) or not isinstance(value, (tuple, list)) or len(value) != len(parts):
+        if isinstance(value, np.ndarray):
+            got = f"an array of shape {value.shape}"
+        elif isinstance(value, (tuple, list)):
+            got = f"a {type(value).__name__} of {len(value)}"
+        else:
+            got = f"{value!r:.80}".replace("\n", " ")
+        raise ContactsError(f"{name} must be a tuple ({', '.join(parts)}), got {got}")
+    return tuple(value)
+
+
+def _frozen(*arrays):
+    for a in arrays:
+        a.flags.writeable = False
+    return arrays
+
+
+@dataclass(frozen=True, init=False)
+class FreeSpace:
+    """Space the fingers swept on their way to the contacts (world frame), where the object is not.
+
+    points : (M, 3) float64, free points; spheres : (centres (K, 3), radii (K,)) float64, free
+    balls; capsules : (a (L, 3), b (L, 3), radii (L,)) float64, the points within a radius of the
+    segment a–b (a finger's approach). Each may be None (none of that kind); radii are >= 0.
+    ``localize(..., free_space=...)`` drops the hypotheses whose posed object meets this space
+    (contactpose.scoring.freespace).
+    """
+
+    points: np.ndarray
+    spheres: tuple
+    capsules: tuple
+
+    def __init__(self, points=None, spheres=None, capsules=None):
+        pts = np.zeros((0, 3)) if points is None else _as_vectors("free_space points", points)
+        if spheres is None:
+            spheres = (np.zeros((0, 3)), np.zeros(0))
+        else:
+            centres, radii = _as_tuple("free_space spheres", spheres, ("centres (K, 3)", "radii (K,)"))
+            centres = _as_vectors("free_space sphere centres", centres)
+            spheres = (centres, _as_radii("free_space sphere radii", radii, len(centres)))
+        if capsules is None:
+            capsules = (np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0))
+        else:
+            a, b, radii = _as_tuple("free_space capsules", capsules, ("a (L, 3)", "b (L, 3)", "radii (L,)"))
+            a = _as_vectors("free_space capsule ends a", a)
+            b = _as_vectors("free_space capsule ends b", b, len(a))
+            capsules = (a, b, _as_radii("free_space capsule radii", radii, len(a)))
+        object.__setattr__(self, "points", _frozen(pts)[0])
+        object.__setattr__(self, "spheres", _frozen(*spheres))
+        object.__setattr__(self, "capsules", _frozen(*capsules))
+
+    @property
+    def size(self):
+        """How many points, spheres and capsules in all."""
+        return len(self.points) + len(self.spheres[1]) + len(self.capsules[2])

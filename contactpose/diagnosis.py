@@ -126,7 +126,7 @@ class _Trials:
                 self.budget.hit = True
                 return None
             arrays = stages.distinct(self.model, arrays, tolerance, deadline, merge_twins=self.prior is None)
-            _, status, _ = stages.classify(self.model, contacts, arrays, tolerance, deadline=deadline)
+            status = stages.classify(self.model, contacts, arrays, tolerance, deadline=deadline)[1]
         if deadline.hit:
             self.budget.hit = True
             return None

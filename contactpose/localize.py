@@ -18,12 +18,20 @@ from contextlib import contextmanager
 import numpy as np
 
 from contactpose import paper, stages
-from contactpose.contacts import Contacts, Tolerance
+from contactpose.contacts import Contacts, FreeSpace, Tolerance
 from contactpose.diagnosis import diagnose as diagnose_answer
 from contactpose.errors import ContactPoseError, ContactsError, check_count
-from contactpose.options import DEFAULT_POSITION_NOISE_FRAC, DEFAULT_REFINE, KEEP, METHODS, SOLVERS, check_robust
+from contactpose.options import (
+    DEFAULT_POSITION_NOISE_FRAC,
+    DEFAULT_REFINE,
+    KEEP,
+    METHODS,
+    OK_PROBABILITY,
+    SOLVERS,
+    check_robust,
+)
 from contactpose.progress import Deadline
-from contactpose.scoring.freespace import drop_blocked
+from contactpose.scoring.freespace import drop_blocked, drop_intersecting
 from contactpose.scoring.status import units_message
 from contactpose.solvers.polish import lowest_chi2_bound
 from contactpose.types import HypothesisList, PosePrior, Result
@@ -32,6 +40,10 @@ from contactpose.types import HypothesisList, PosePrior, Result
 DEFAULT_TIME_LIMIT = 60.0
 #: Contacts spread wider than this many object diameters are an input error (units).
 UNITS_ERROR_RATIO = 10.0
+#: warm_up calls localize at most this often, and within this many seconds: the banana's calls
+#: (0.3 ms; the first, which loads the kernels, 0.1 s) settle by the tenth or so.
+WARM_UP_CALLS = 20
+WARM_UP_SECONDS = 0.25
 
 __all__ = ["DEFAULT_TIME_LIMIT", "localize", "warm_up"]
 
@@ -40,7 +52,7 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
              method="fast", solver=None, top=None, model_error=0.0, max_outliers=0, robust="huber",
              refine=DEFAULT_REFINE, samples=0, seed=None, sample_top=1, finger_radius=None,
              time_limit=DEFAULT_TIME_LIMIT, progress=None, distinct=True, surface="auto", keep="fitting", tree=None,
-             diagnose=True, twins=False):
+             diagnose=True, twins=False, ok_probability=OK_PROBABILITY, free_space=None):
     """Find every admissible finger-to-facet assignment and the object pose behind each.
 
     model : ObjectModel; contacts : Contacts (world frame); position_noise : per-axis σ of
@@ -62,7 +74,11 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
     kept, since their pose is one arbitrary member of a family; on a facet table (no regions), a poor fit
     of rounded fingertips is searched again over the facets, sharp edges and vertices
     (stages.edge_hypotheses; an empty answer always is), on a model of surface regions with
-    the normal gates widened (stages.with_widened_normals). time_limit : seconds for the
+    the normal gates widened (stages.with_widened_normals). free_space : a contactpose.FreeSpace,
+    the space the fingers swept on their way to the contacts (world frame): drop the hypotheses
+    whose posed object meets it by more than the pair distance tolerance σ_Δ, tested best first
+    within a bounded cost (scoring.freespace.drop_intersecting); the hint says how many
+    placements it ruled out. time_limit : seconds for the
     search (None: unbounded); when it runs out, the hypotheses found so far are returned with
     status "time_limit". progress : tqdm bars (None: on a terminal, for work over a second).
     distinct : list one hypothesis per distinct pose, the best of its near-copies (assignments
@@ -93,6 +109,12 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
     noise (a search.tree.SearchTree; "fast"): only the pairs of the new contacts with the others
     are queried and its tuples grow by them, the same tree as a search of all (TouchSession
     uses it). ``result.tree`` is this search's tree (None for "paper", or when the time limit cut it).
+    ok_probability : "ok" needs the best pose strictly right (within 5° and 5 % of the
+    diameter, modulo symmetry) with at least this probability, from the distinct placements
+    weighed by their Laplace evidence (scoring.placements; ``result.confidence``,
+    ``result.placements``); short of it the answer is "ambiguous" (the placements and their
+    probabilities in the hint) or "underdetermined" (how loosely the contacts pin the pose).
+    "fast" only; the paper's rule is the classes' likelihood shares.
     diagnose : for an empty or poor answer ("fast"), test its likely causes by localizing again
     with the input changed, within what is left of time_limit, and name the one that holds in
     ``result.diagnosis`` and the hint (contactpose.diagnosis); False skips the tests
@@ -104,6 +126,9 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
         raise ContactPoseError(f"keep must be one of {KEEP}, got {keep!r}")
     deadline = Deadline(_check_time_limit(time_limit))
     check_robust(robust)
+    ok_probability = _check_probability(ok_probability)
+    if free_space is not None and not isinstance(free_space, FreeSpace):
+        raise ContactPoseError(f"free_space must be a contactpose.FreeSpace or None, got {type(free_space).__name__}")
     max_outliers = _check_outliers(max_outliers, method, contacts.n)
     samples = check_count(samples, "samples", minimum=0)
     if position_noise is None:
@@ -124,6 +149,10 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
     if finger_radius is not None:
         with _clock(timing, "free_space"):
             arrays = drop_blocked(model, contacts, arrays, finger_radius)
+    if free_space is not None:
+        with _clock(timing, "free_space"):
+            arrays, note = drop_intersecting(model, contacts, arrays, free_space, tolerance)
+        notes += (note,)
     assignments = len(arrays.cost)
     if fast and distinct:
         refit, every = surface and solver == "closed-form", arrays
@@ -143,11 +172,12 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
                                                       k=refine)
         notes += (rescue,)
     with _clock(timing, "rank"):
-        classes, status, hint = stages.classify(model, contacts, arrays, tolerance, bound=fast, deadline=deadline,
-                                                notes=notes)
+        classes, status, hint, found, confidence = stages.classify(
+            model, contacts, arrays, tolerance, bound=fast, deadline=deadline, notes=notes,
+            ok_probability=ok_probability if fast else None, prior=prior)
         num = len(arrays.cost)
         if keep == "fitting" and fast and distinct and status != "time_limit":
-            arrays, classes = stages.listed(arrays, classes)
+            arrays, classes, found = stages.listed(arrays, classes, found)
         if top is not None:
             arrays = arrays.take(slice(0, top))
     hypotheses = HypothesisList(arrays)
@@ -164,7 +194,8 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
         hint, diagnosis = diagnose_answer(model, contacts, tolerance, status, hint, arrays, method=method,
                                           max_outliers=max_outliers, prior=prior, deadline=deadline, timing=timing)
     return Result(status, hypotheses, timing, method, solver, tolerance, hint, num_hypotheses=num, classes=classes,
-                  num_assignments=assignments, tree=grown, diagnosis=diagnosis)
+                  num_assignments=assignments, tree=grown, diagnosis=diagnosis, model=model, contacts=contacts,
+                  confidence=confidence, placements=found)
 
 
 @contextmanager
@@ -178,14 +209,35 @@ def _clock(timing, stage):
 
 
 def warm_up(model, contacts, **options):
-    """Load numba's compiled kernels before ``localize`` is timed: one call on ``contacts``,
-    then the in-facet χ² bound on its first hypothesis. A grasp whose hypotheses all fit within
-    noise by their planes never reaches that bound, so a warm-up by grasps alone can leave its
-    kernel to load (some 25–40 ms) inside the first timed grasp that does. options : as for
-    :func:`localize`."""
+    """Do, untimed, what the first ``localize`` calls on ``model`` do once, before ``localize`` is
+    timed: one call on ``contacts``, the in-facet χ² bound on its first hypothesis, then more
+    calls until they run as later ones do: WARM_UP_CALLS in all, while the next call, taking as
+    long as the last, keeps the time they spend within WARM_UP_SECONDS (a slow call is warm
+    after one).
+
+    * The first call loads numba's compiled kernels, and finds the model's symmetry, once per
+      model object (model.symmetry: 4 ms to 0.3 s on a model built from a mesh; a model file
+      stores it), so warm up on the model that is then timed.
+    * A grasp whose hypotheses all fit within noise by their planes never reaches the
+      in-facet bound, so a warm-up by grasps alone can leave its kernel to load (some
+      25–40 ms) inside the first timed grasp that does.
+    * CPython specialises a function's bytecode over its first several calls, and loading a
+      kernel leaves the next calls slow: a call of a millisecond or less (the banana's) runs
+      two to three times slower for its first ten or so, and after a load.
+
+    options : as for :func:`localize`."""
+    start = time.perf_counter()
     result = localize(model, contacts, **options)
+    last = time.perf_counter() - start
     if result.num_hypotheses:
         lowest_chi2_bound(model, contacts, result.hypotheses.arrays, np.zeros(1, dtype=np.int64), result.tolerance)
+    start = time.perf_counter()
+    for _ in range(WARM_UP_CALLS - 1):
+        if time.perf_counter() - start + last > WARM_UP_SECONDS:
+            break
+        call = time.perf_counter()
+        localize(model, contacts, **options)
+        last = time.perf_counter() - call
 
 
 def _check_options(method, solver, top, contacts, prior, tree):
@@ -224,6 +276,12 @@ def _check_outliers(max_outliers, method, n):
     if max_outliers and n - max_outliers < 3:
         raise ContactPoseError(f"max_outliers={max_outliers} with {n} contacts leaves fewer than 3 to fit a pose")
     return max_outliers
+
+
+def _check_probability(p):
+    if isinstance(p, bool) or not isinstance(p, (int, float, np.integer, np.floating)) or not 0.0 < p <= 1.0:
+        raise ContactPoseError(f"ok_probability must be a probability in (0, 1], got {p!r}")
+    return float(p)
 
 
 def _check_time_limit(time_limit):

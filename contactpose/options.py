@@ -27,6 +27,11 @@ FIT_CONFIDENCE = 0.9973
 #: With evidence-based probabilities (factor graph), "ambiguous" needs the classes other
 #: than the best to hold more than this probability together.
 AMBIGUOUS_PROBABILITY = 0.05
+#: "ok" needs the best pose strictly right (rotation within 5°, translation within 5 % of the
+#: diameter, modulo symmetry) with at least this probability (localize(ok_probability=)).
+OK_PROBABILITY = 0.99
+#: The hint of an answer short of it lists the placements of at least this probability.
+LISTED_PROBABILITY = 0.01
 #: χ² charged per unassigned finger (max_outliers): the FIT_CONFIDENCE quantile of one
 #: contact's 3 dof, so dropping a finger never beats assigning it within noise.
 OUTLIER_PENALTY = 14.16

@@ -7,7 +7,7 @@ import numpy as np
 
 #: Version of every JSON the CLI writes (contactpose/data/*.schema.json). Bump the minor
 #: number for added keys, the major one for renamed or removed keys.
-SCHEMA_VERSION = "1.2"
+SCHEMA_VERSION = "1.3"
 #: The columns of a hypothesis's (n, 5) residuals: the normal residual R n_k + ñ_i (world,
 #: unitless), the offset (point-to-plane; eq. (7) for "paper") and the lateral distance
 #: outside the facet triangle (length units).

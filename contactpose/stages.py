@@ -25,6 +25,7 @@ import numpy as np
 from contactpose.costs.association import fitting_members, nearest_fit_facets
 from contactpose.geometry.metrics import rms_displacement
 from contactpose.model.memory import ONLINE_BYTES, gib, online_fits
+from contactpose.model.symmetry import symmetry
 from contactpose.model.units import unit_table_cost
 from contactpose.options import DEFAULT_REFINE, OUTLIER_PENALTY, fit_threshold
 from contactpose.progress import Deadline
@@ -33,6 +34,7 @@ from contactpose.scoring import rank as ranking
 from contactpose.scoring.classes import MAX_CLASS_HYPOTHESES, distinct_poses, distinct_radius, pose_classes
 from contactpose.scoring.freespace import drop_blocked
 from contactpose.scoring.infacet import within_noise
+from contactpose.scoring.placements import placements
 from contactpose.scoring.status import status as status_of
 from contactpose.search.grow import grow_tree, triple_test, warn_explosion
 from contactpose.search.tree import join_tuples
@@ -421,14 +423,20 @@ def refine_hypotheses(model, contacts, arrays, tolerance, *, prior=None, robust=
     return refined(arrays)[0], note
 
 
-def classify(model, contacts, arrays, tolerance, *, bound=True, deadline=None, notes=()):
-    """Pose classes of the hypotheses that fit within noise, and the status with its hint
-    (scoring.status; deadline : the search's progress.Deadline: once passed, the fit test
-    stops and the status is "time_limit").
+def classify(model, contacts, arrays, tolerance, *, bound=True, deadline=None, notes=(), ok_probability=None,
+             prior=None):
+    """Pose classes of the hypotheses that fit within noise, their distinct placements, and
+    the status with its hint (scoring.status; deadline : the search's progress.Deadline:
+    once passed, the fit test stops and the status is "time_limit").
 
     bound : the fit test, the in-facet lower bound on each hypothesis's best χ²
-    (scoring.infacet), or, False, the χ² at its pose (the paper's). notes : what earlier
-    stages did, joined to the hint. Returns (list of PoseClass, status, hint).
+    (scoring.infacet), or, False, the χ² at its pose (the paper's). ok_probability : with it,
+    the placements modulo symmetry are weighed by their Laplace evidence
+    (scoring.placements) and "ok" needs the best pose strictly right with at least this
+    probability; None: the placements are not weighed (the paper's rule); prior : a
+    PosePrior, whose density weighs the placements too. notes : what
+    earlier stages did, joined to the hint. Returns (list of PoseClass, status, hint, list of
+    Placement, confidence or None).
     """
     if bound:
         fits = within_noise(model, contacts, arrays, tolerance, fit_threshold(contacts.n), enough=MAX_CLASS_HYPOTHESES,
@@ -436,12 +444,16 @@ def classify(model, contacts, arrays, tolerance, *, bound=True, deadline=None, n
     else:
         fits = arrays.chi2 <= fit_threshold(contacts.n)
     classes = pose_classes(model, arrays, fits)
+    found, confidence = [], None
+    if ok_probability is not None:
+        found, confidence = placements(model, contacts, arrays, fits, tolerance, symmetry(model), prior)
     truncated = deadline is not None and deadline.hit
-    status, hint = status_of(model, contacts, arrays, classes, tolerance, fits, truncated)
+    status, hint = status_of(model, contacts, arrays, classes, tolerance, fits, truncated, placements=found,
+                             confidence=confidence, ok_probability=ok_probability)
     for note in notes:
         if note:
             hint = f"{hint}; {note}" if hint else note
-    return classes, status, hint
+    return classes, status, hint, found, confidence
 
 
 def listed_rows(classes, count):
@@ -453,13 +465,14 @@ def listed_rows(classes, count):
     return np.union1d([0], np.concatenate([c.members for c in classes]))
 
 
-def listed(arrays, classes):
-    """The hypotheses keep="fitting" lists (:func:`listed_rows`), with the classes' ranks
-    moved to that list. -> (HypothesisArrays, classes)"""
+def listed(arrays, classes, found=()):
+    """The hypotheses keep="fitting" lists (:func:`listed_rows`), with the ranks of the
+    classes and of the placements ``found`` (whose members are the classes') moved to that
+    list. -> (HypothesisArrays, classes, placements)"""
     rows = listed_rows(classes, len(arrays.cost))
-    moved = [dataclasses.replace(c, members=np.searchsorted(rows, c.members), best=int(np.searchsorted(rows, c.best)))
-             for c in classes]
-    return arrays.take(rows), moved
+    move = (lambda c: dataclasses.replace(c, members=np.searchsorted(rows, c.members),
+                                          best=int(np.searchsorted(rows, c.best))))
+    return arrays.take(rows), [move(c) for c in classes], [move(p) for p in found]
 
 
 # ----------------------------------------------------------------- helpers ---

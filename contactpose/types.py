@@ -12,8 +12,9 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
+from contactpose import view
 from contactpose.contacts import Tolerance
-from contactpose.errors import PriorError
+from contactpose.errors import ContactPoseError, PriorError
 from contactpose.schema import RESIDUAL_COLUMNS, SCHEMA_VERSION, json_array, json_number, result_units, tolerance_dict
 
 
@@ -314,7 +315,11 @@ class Result:
     hypotheses : ranked list, best first; timing : seconds per stage; hint : why, when not ok;
     tree : the search's tree (a search.tree.SearchTree), for ``localize(..., tree=)`` to extend;
     diagnosis : for an empty or poor answer (no_hypothesis, poor_fit) of the default method,
-    the :class:`Diagnosis` of its cause; None otherwise.
+    the :class:`Diagnosis` of its cause; None otherwise; confidence : the probability that the
+    best pose is strictly right (scoring.placements; None for the paper's method); placements :
+    the distinct placements that fit within noise, modulo symmetry, best first
+    (scoring.placements.Placement, each with its probability); model, contacts : the ObjectModel and
+    the Contacts (world frame) that the answer is of, for :meth:`to_html` (None when not kept).
     """
 
     status: str
@@ -330,6 +335,10 @@ class Result:
     num_assignments: int | None = None
     tree: object = field(default=None, repr=False, compare=False)
     diagnosis: Diagnosis | None = None
+    confidence: float | None = None
+    placements: list = field(default_factory=list)
+    model: object = field(default=None, repr=False, compare=False)
+    contacts: object = field(default=None, repr=False, compare=False)
 
     def __post_init__(self):
         if self.num_assignments is None:
@@ -364,10 +373,72 @@ class Result:
             "classes": [c.to_dict() for c in self.classes],
             "hypotheses": hypotheses,
             "diagnosis": None if self.diagnosis is None else self.diagnosis.to_dict(),
+            "confidence": None if self.confidence is None else json_number(self.confidence),
+            "placements": [p.to_dict() for p in self.placements],
         }
         if self.extra:
             out["extra"] = dict(self.extra)
         return out
+
+    def to_html(self, path, model=None, contacts=None, finger_radius=None):
+        """Write this answer as one self-contained 3D page (HTML that opens offline:
+        contactpose.view): the object at the best placement, the contacts with their finger
+        normals, fingertips of ``finger_radius`` (None: none), the other placements translucent
+        (the pose classes, else the hypotheses; named by rank and probability, toggled in the
+        legend), the directions the best pose leaves free, and a title of status, best facets
+        and hint. model : ObjectModel, contacts : Contacts (world frame); default: those the
+        Result was made of (localize and TouchSession keep them). -> the path written"""
+        model = self.model if model is None else model
+        contacts = self.contacts if contacts is None else contacts
+        if model is None or contacts is None:
+            raise ContactPoseError("to_html needs the model and the contacts: this Result keeps none, give model= and "
+                                   "contacts=")
+        for name, value, attributes in (("model", model, ("vertices", "faces")),
+                                        ("contacts", contacts, ("points", "finger_normals"))):
+            if not all(hasattr(value, a) for a in attributes):
+                raise ContactPoseError(f"{name} must have {' and '.join(attributes)} (an ObjectModel, a Contacts), "
+                                       f"got {type(value).__name__}")
+        best = self.best
+        if best is not None and len(best.facets) != len(contacts.points):
+            raise ContactPoseError(f"contacts has {len(contacts.points)} contacts, the answer's hypotheses "
+                                   f"{len(best.facets)}: give the contacts it was localized from")
+        best_name, others = self._page_placements()
+        fig = view.localization_figure(
+            model.vertices, model.faces, contacts.points, contacts.finger_normals,
+            pose=None if best is None else best.pose, best_name=best_name, others=others, finger_radius=finger_radius,
+            free_translation=None if best is None else best.free_translation,
+            free_rotation=None if best is None else best.free_rotation, title=self._view_title())
+        return view.write_html(fig, path)
+
+    def _page_placements(self):
+        """The placements a page shows: (the best's name, [(name, pose (4, 4))] of the others,
+        best first, at most view.MAX_OTHERS). They are the distinct placements weighed by
+        evidence (the pose classes where there are none: the paper's method), each named by its
+        rank and probability, the best hypothesis's first; without either, the hypotheses,
+        named by rank and χ² (and probability, where known)."""
+        groups = self.placements or self.classes
+        if groups:
+            names = [f"placement {i + 1}, p = {c.probability:.3g}" for i, c in enumerate(groups)]
+            own = next((i for i, c in enumerate(groups) if 0 in np.asarray(c.members)), None)
+            best_name = "best placement" + ("" if own is None else f" ({names[own]})")
+            others = [(names[i], c.pose) for i, c in enumerate(groups) if i != own]
+            return best_name, others[:view.MAX_OTHERS]
+        shown = self.hypotheses[:view.MAX_OTHERS + 1]
+        names = [f"hypothesis {i + 1}, chi2 = {h.chi2:.3g}" + ("" if h.probability is None else
+                                                                f", p = {h.probability:.3g}")
+                 for i, h in enumerate(shown)]
+        return ("best placement" + (f" ({names[0]})" if names else ""),
+                [(name, h.pose) for name, h in zip(names[1:], shown[1:])])
+
+    def _view_title(self):
+        """The page's title: status, counts and best facets; the hint on a line of its own."""
+        n = int(self.num_hypotheses)
+        first = f"status {self.status}: {n} hypothes{'i' if n == 1 else 'e'}s"
+        if self.best is not None:
+            first += f", best facets {self.best.facets.tolist()}, chi2 {self.best.chi2:.3g}"
+            if self.best.underdetermined:
+                first += " (underdetermined: free directions drawn)"
+        return view.title_text(first, self.hint)
 
     def __repr__(self):
         n, shown = int(self.num_hypotheses), len(self.hypotheses)

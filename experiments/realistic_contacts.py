@@ -406,7 +406,28 @@ def ours(s, contacts, truth, noise, cfg, model=None, **options):
            "widened": "widened" in r.hint, "warned_explosion": any("explode" in str(w.message) for w in caught),
            "time_online_ms": 1e3 * r.timing["total"], "time_wall_ms": 1e3 * wall}
     row.update(score(s, poses, truth, cfg, cfg["max_anchors"]))
+    row.update(placement_columns(s, r, truth))
     return r, row
+
+
+def placement_columns(s, result, truth):
+    """How sure the answer says it is, against the truth: its confidence (the probability
+    that the best pose is strictly right), the best pose strictly right modulo the object's
+    symmetry group (``strict_sym``), how many distinct placements it weighed, and whether one
+    of them is strictly right (``truth_listed``)."""
+    best = [] if result.best is None else [result.best.pose]
+    listed = [p.pose for p in result.placements]
+    return {"confidence": result.confidence, "strict_sym": bool(strict_modulo_symmetry(s, best, truth).any()),
+            "placements": len(listed), "truth_listed": bool(strict_modulo_symmetry(s, listed, truth).any())}
+
+
+def strict_modulo_symmetry(s, poses, truth):
+    """(K,) bool: each pose strictly right (metrics.pose_success's thresholds) modulo the
+    object's symmetry group. poses : list of (4, 4)."""
+    if not len(poses):
+        return np.zeros(0, dtype=bool)
+    rot, trans = s.group.errors(np.stack(poses), truth)
+    return (rot < metrics.SUCCESS_ROT_DEG) & (trans < metrics.SUCCESS_TRANS_FRAC * s.model.diameter)
 
 
 def draw(s, rng, frac, cfg):

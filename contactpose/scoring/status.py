@@ -26,7 +26,7 @@ from __future__ import annotations
 import numpy as np
 
 from contactpose.model.symmetry import symmetries
-from contactpose.options import AMBIGUOUS_PROBABILITY, fit_threshold
+from contactpose.options import AMBIGUOUS_PROBABILITY, LISTED_PROBABILITY, fit_threshold
 
 #: The statuses of an empty or poor answer, whose cause localize diagnoses.
 DIAGNOSED = ("no_hypothesis", "poor_fit")
@@ -38,11 +38,15 @@ POOR_FIT_REASONS = "more noise than stated, a finger off the object, or a model 
 FINGER_OFF_RATIO = 2.0
 
 
-def status(model, contacts, arrays, classes, tolerance, fits=None, truncated=False):
+def status(model, contacts, arrays, classes, tolerance, fits=None, truncated=False, *, placements=(),
+           confidence=None, ok_probability=None):
     """Status and hint from the ranked hypotheses and their pose classes.
 
     fits : (H,) bool, the hypotheses that fit within noise (default: those in a class);
-    truncated : the search stopped at its time limit.
+    truncated : the search stopped at its time limit; placements, confidence : the
+    distinct placements weighed by evidence and the probability that the best pose is
+    strictly right (scoring.placements); with ok_probability, "ok" needs that confidence
+    (:func:`sure`), else the class probabilities decide (:func:`ambiguous`).
     """
     if len(arrays.cost) == 0:
         if truncated:
@@ -59,12 +63,42 @@ def status(model, contacts, arrays, classes, tolerance, fits=None, truncated=Fal
         return "underdetermined", ("the hypothesised facet normals leave pose directions free; see "
                                    "free_translation / free_rotation")
     symmetric = symmetry_note(model)
+    if ok_probability is not None:
+        status, hint = sure(model, placements, confidence, ok_probability)
+        return status, "; ".join(h for h in (hint, symmetric) if h)
     if ambiguous(classes):
         shown = [c for c in classes if c.probability > AMBIGUOUS_PROBABILITY]
         hint = (f"{len(shown)} distinct placements fit within noise with probabilities "
                 f"{', '.join(f'{c.probability:.2f}' for c in shown)}; add a prior or a touch")
         return "ambiguous", f"{hint}; {symmetric}" if symmetric else hint
     return "ok", symmetric
+
+
+def sure(model, placements, confidence, ok_probability):
+    """("ok", "") when the best pose is strictly right with probability ``confidence`` of at
+    least ``ok_probability``; else ("ambiguous", the placements of LISTED_PROBABILITY or
+    more with their probabilities) when others share the probability, or
+    ("underdetermined", how loosely the contacts pin the best pose) when it has it alone."""
+    if confidence >= ok_probability:
+        return "ok", ""
+    shown = [p for p in placements if p.probability >= LISTED_PROBABILITY]
+    if len(shown) > 1:
+        return "ambiguous", (f"{len(shown)} distinct placements fit within noise with probabilities "
+                             f"{', '.join(f'{p.probability:.2f}' for p in shown)} (the best pose is strictly right "
+                             f"with probability {confidence:.2f}, below {ok_probability:g}); add a prior or a touch")
+    spread = _spread(placements[0].covariance, model.diameter) if placements else "not at all"
+    return "underdetermined", (f"the contacts pin the best pose {spread}: it is strictly right (within 5 degrees "
+                               f"and 5 % of the diameter) with probability {confidence:.2f}, below {ok_probability:g}; "
+                               "add a touch")
+
+
+def _spread(covariance, diameter):
+    """How loosely a Laplace covariance (6, 6) or None pins a pose, in words (1 σ)."""
+    if covariance is None:
+        return "only up to a family of poses"
+    rot = np.degrees(np.sqrt(np.linalg.eigvalsh(covariance[:3, :3])[-1]))
+    trans = np.sqrt(np.linalg.eigvalsh(covariance[3:, 3:])[-1]) / diameter
+    return f"to {rot:.2g} degrees and {100 * trans:.2g} % of the diameter (1 sigma, widest directions)"
 
 
 def ambiguous(classes, threshold=AMBIGUOUS_PROBABILITY):
