@@ -17,7 +17,7 @@ from contactpose.cli.common import (
 )
 from contactpose.io import jsonfiles
 from contactpose.localize import DEFAULT_TIME_LIMIT, localize
-from contactpose.options import KEEP, METHODS, OUTLIER_PENALTY, ROBUST, SOLVERS, fit_threshold
+from contactpose.options import KEEP, METHODS, OK_PROBABILITY, OUTLIER_PENALTY, ROBUST, SOLVERS, fit_threshold
 from contactpose.scoring.status import DIAGNOSED
 from contactpose.stages import POOR_FIT_LISTED
 
@@ -76,6 +76,9 @@ def register(sub):
     p.add_argument("--time-limit", type=float, default=DEFAULT_TIME_LIMIT, metavar="SEC",
                    help="seconds the search may take; past them the hypotheses found so far come back with "
                         "status time_limit (0: no limit)")
+    p.add_argument("--ok-probability", type=float, default=OK_PROBABILITY, metavar="P",
+                   help="status ok needs the best pose strictly right (within 5 degrees and 5 %% of the diameter, "
+                        f"modulo symmetry) with at least this probability (default: {OK_PROBABILITY:g})")
     p.add_argument("--strict", action="store_true",
                    help=f"exit with code {EXIT_STRICT} when the answer is empty or poor (status "
                         f"{' or '.join(DIAGNOSED)}; the hint and the JSON's diagnosis name the cause)")
@@ -105,6 +108,8 @@ def warn_options_in_vain(args):
         warn_in_vain("--twins", "without -o (the printed result shows the best hypothesis only)")
     if args.top is not None and not args.output:
         warn_in_vain("--top", "without -o (the printed result shows the best hypothesis only)")
+    if args.ok_probability != OK_PROBABILITY and args.method == "paper":
+        warn_in_vain("--ok-probability", "with --method paper (its status keeps the paper's rule)")
     if args.fix_normals and is_model_file(args.model):
         warn_in_vain("--fix-normals", f"with a model file ({args.model}): it applies when building from a mesh")
 
@@ -123,7 +128,7 @@ def run(args):
                       max_outliers=args.max_outliers, samples=args.samples, seed=args.seed,
                       finger_radius=args.finger_radius, time_limit=args.time_limit or None,
                       surface="auto" if args.surface is None else args.surface, keep=args.keep, model_error=args.model_error,
-                      twins=args.twins,
+                      twins=args.twins, ok_probability=args.ok_probability,
                       refine=DEFAULT_REFINE if args.refine is None else args.refine)
     warn_options_in_vain(args)  # after the checks: bad input gets its one error line only
     if args.output:
@@ -141,6 +146,9 @@ def print_result(result, n):
         print(f"cause: {result.diagnosis.cause}")
     took = f"  diagnosis: {result.timing['diagnose'] * 1000:.2f} ms" if "diagnose" in result.timing else ""
     print(f"hypotheses: {result.num_hypotheses}  time: {result.timing['total'] * 1000:.2f} ms{took}")
+    if result.confidence is not None and result.placements:
+        print(f"confidence: {result.confidence:.3f} that the best pose is strictly right (within 5 degrees and 5 % of "
+              f"the diameter); distinct placements: {len(result.placements)}")
     if result.best is None:
         return
     b = result.best

@@ -1,0 +1,131 @@
+"""How sure the default method is when it says ok: the reliability of its confidence, from
+the rows of an experiments/realistic_contacts.py run.
+
+Reads ``grasps.csv`` (the default method's rows with the columns ``confidence``,
+``strict_sym``, ``truth_listed`` and ``status``) and the committed run's rows on the same
+grasps (results/realistic_contacts/grasps.csv, the statuses before "ok" needed a confidence),
+and writes beside the given rows:
+
+* ``reliability.csv``: per radius (and pooled), the answers binned by confidence (tenths):
+  count, mean confidence, share strictly right modulo symmetry;
+* ``sure.csv``: per object and radius (and pooled per radius): grasps, ok share and the ok
+  answers strictly right; ambiguous answers that list the truth; the expected calibration
+  error; and, on the same grasps before, the ok share, its strict share and the strict share
+  of all answers;
+* ``sure.md``: both as tables.
+
+    python experiments/sure_summary.py results/sure/grasps.csv
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+BEFORE = ROOT / "results" / "realistic_contacts" / "grasps.csv"
+BINS = np.linspace(0.0, 1.0, 11)
+
+
+def rows_of(path):
+    return [r for r in csv.DictReader(open(path)) if r["method"] == "fast"]
+
+
+def flag(r, key):
+    return r.get(key, "") in ("1", "True", "true")
+
+
+def confidence(r):
+    return float(r["confidence"]) if r.get("confidence", "") not in ("", "None") else 0.0
+
+
+def reliability(rows):
+    """[(bin low, count, mean confidence, share strictly right)] and the expected calibration error."""
+    conf = np.array([confidence(r) for r in rows])
+    right = np.array([flag(r, "strict_sym") for r in rows], dtype=float)
+    table, ece = [], 0.0
+    for k, (lo, hi) in enumerate(zip(BINS[:-1], BINS[1:])):
+        m = (conf >= lo) & ((conf < hi) if k < len(BINS) - 2 else (conf <= hi))
+        if m.any():
+            table.append((lo, int(m.sum()), float(conf[m].mean()), float(right[m].mean())))
+            ece += m.sum() / len(conf) * abs(conf[m].mean() - right[m].mean())
+    return table, float(ece)
+
+
+def share(rows, test):
+    return float(np.mean([test(r) for r in rows])) if rows else float("nan")
+
+
+def cell(rows, before):
+    """The sure.csv columns of one set of grasps and the same grasps' rows before."""
+    ok = [r for r in rows if r["status"] == "ok"]
+    amb = [r for r in rows if r["status"] == "ambiguous"]
+    return {"grasps": len(rows), "ok": share(rows, lambda r: r["status"] == "ok"),
+            "ok_strict": share(ok, lambda r: flag(r, "strict_sym")), "ok_n": len(ok),
+            "ambiguous_n": len(amb), "ambiguous_truth_listed": share(amb, lambda r: flag(r, "truth_listed")),
+            "ece": reliability(rows)[1], "strict": share(rows, lambda r: flag(r, "strict_sym")),
+            "before_ok": share(before, lambda r: r["status"] == "ok"),
+            "before_ok_strict": share([r for r in before if r["status"] == "ok"], lambda r: flag(r, "top1_strict")),
+            "before_strict": share(before, lambda r: flag(r, "top1_strict"))}
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("grasps", help="grasps.csv of a realistic_contacts run with the confidence columns")
+    args = parser.parse_args(argv)
+    rows = rows_of(args.grasps)
+    seen = {(r["object"], r["radius_frac"], r["seed"]) for r in rows}
+    before = [r for r in rows_of(BEFORE) if (r["object"], r["radius_frac"], r["seed"]) in seen]
+    radii = sorted({r["radius_frac"] for r in rows}, key=float)
+    out = Path(args.grasps).parent
+    sure = []
+    for obj in sorted({r["object"] for r in rows}) + ["pooled"]:
+        for rad in radii:
+            pick = (lambda rs: [r for r in rs if r["radius_frac"] == rad and obj in ("pooled", r["object"])])
+            sure.append({"object": obj, "radius_frac": rad, **cell(pick(rows), pick(before))})
+    write(out / "sure.csv", sure)
+    rel = [{"radius_frac": rad, "bin": f"{lo:.1f}", "count": n, "confidence": c, "strict": s}
+           for rad in radii + ["all"]
+           for lo, n, c, s in reliability([r for r in rows if rad in ("all", r["radius_frac"])])[0]]
+    write(out / "reliability.csv", rel)
+    (out / "sure.md").write_text(markdown(sure, rel))
+    print((out / "sure.md").read_text())
+    return 0
+
+
+def write(path, rows):
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+
+
+def pct(x):
+    return "–" if x != x else f"{100 * x:.0f} %"
+
+
+def markdown(sure, rel):
+    lines = ["# How sure the default method is when it says ok", "",
+             "From experiments/sure_summary.py over this folder's grasps.csv. ok: the best pose is strictly "
+             "right (within 5° and 5 % of the diameter, modulo symmetry) with a confidence of at least 0.99. "
+             "Before: the committed results/realistic_contacts rows of the same grasps (strict there is not "
+             "modulo symmetry).", "",
+             "| object | r | grasps | ok | ok strictly right | ambiguous: truth listed | ECE | strict (all) | "
+             "before: ok | before: ok strictly right | before: strict |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for s in sure:
+        lines.append(f"| {s['object'].replace('ycb:', '')} | {float(s['radius_frac']):g} | {s['grasps']} | {pct(s['ok'])} | "
+                     f"{pct(s['ok_strict'])} | {pct(s['ambiguous_truth_listed'])} ({s['ambiguous_n']}) | "
+                     f"{s['ece']:.3f} | {pct(s['strict'])} | {pct(s['before_ok'])} | {pct(s['before_ok_strict'])} | "
+                     f"{pct(s['before_strict'])} |")
+    lines += ["", "## Reliability of the confidence", "",
+              "| r | confidence bin | answers | mean confidence | strictly right |", "|---|---|---:|---:|---:|"]
+    lines += [f"| {r['radius_frac']} | {r['bin']} | {r['count']} | {r['confidence']:.3f} | {r['strict']:.3f} |"
+              for r in rel]
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
