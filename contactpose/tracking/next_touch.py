@@ -125,7 +125,8 @@ class Touch:
 
 def class_poses(model, result, prior="likelihood"):
     """(C, 4, 4) poses, (C,) probabilities and (C,) best-hypothesis ranks of the result's
-    pose classes.
+    distinct placements (result.placements, modulo symmetry, where localize weighed them),
+    else of its pose classes (whose ADD-S grouping can hold a near-symmetric flip in one).
 
     prior : "likelihood" (∝ exp(-χ²/2) of each class's best hypothesis), "classes" (the
     result's class probabilities, summed over members) or "uniform". A result without
@@ -133,7 +134,7 @@ def class_poses(model, result, prior="likelihood"):
     """
     if prior not in PRIORS:
         raise ContactPoseError(f"prior must be one of {PRIORS}, got {prior!r}")
-    classes = list(getattr(result, "classes", []) or [])
+    classes = list(getattr(result, "placements", []) or []) or list(getattr(result, "classes", []) or [])
     if not classes:
         if result.best is None:
             raise ContactPoseError(f"the result has no hypothesis (status {result.status!r}); nothing to separate")

@@ -199,8 +199,8 @@ def test_held_session_follows_the_truth_and_batch_lm(rock_model):
 
 
 def test_suggest_touch_separates_the_classes(rock_model):
-    """Three contacts on the rock leave several pose classes. The probe the session suggests
-    predicts, under each class's pose, the contact trimesh's ray cast finds there; touching the
+    """Three contacts on the rock leave several placements. The probe the session suggests
+    predicts, under each placement's pose, the contact trimesh's ray cast finds there; touching the
     object at its true pose along that probe (trimesh again) leaves fewer classes, the best at
     the truth."""
     noise = dict(position_noise=0.001, normal_noise_deg=2.0)
@@ -208,17 +208,18 @@ def test_suggest_touch_separates_the_classes(rock_model):
     session = TouchSession(rock_model, **noise)
     for k in range(3):
         before = session.add(g.contacts.permuted([k]))
-    assert before.status == "ambiguous" and len(before.classes) > 2
+    assert before.status == "ambiguous" and len(before.placements) > 2
     touch = session.suggest_touch(rng=np.random.default_rng(0), n_candidates=50)
     mesh = trimesh.Trimesh(rock_model.vertices, rock_model.faces, process=False)
-    for c, cls in enumerate(before.classes):
+    for c, cls in enumerate(before.placements):  # the probe tells the weighed placements apart
         if touch.outcomes[c]["kind"] == "contact":
             hit = _first_hit(mesh, cls.pose, touch.start, touch.direction)
             np.testing.assert_allclose(hit[0], touch.outcomes[c]["point"], atol=1e-6)
     point, normal = _first_hit(mesh, g.pose, touch.start, touch.direction)
     after = session.add(Contacts(point[None], object_normals=normal[None]))
-    assert len(after.classes) < len(before.classes)
-    assert rotation_error_deg(after.classes[0].pose, g.pose) < 5.0
+    held = (lambda r: sum(p.probability >= 0.01 for p in r.placements))  # the count is capped (MAX_PLACEMENTS)
+    assert held(after) < held(before) and after.placements[0].probability > before.placements[0].probability
+    assert rotation_error_deg(after.placements[0].pose, g.pose) < 5.0
 
 
 def _first_hit(mesh, pose, start, direction):
