@@ -20,10 +20,11 @@ and writes beside the given rows:
 from __future__ import annotations
 
 import argparse
-import csv
 from pathlib import Path
 
 import numpy as np
+
+from contactpose.harness import sweep
 
 ROOT = Path(__file__).resolve().parents[1]
 BEFORE = ROOT / "results" / "realistic_contacts" / "grasps.csv"
@@ -31,7 +32,7 @@ BINS = np.linspace(0.0, 1.0, 11)
 
 
 def rows_of(path):
-    return [r for r in csv.DictReader(open(path)) if r["method"] == "fast"]
+    return [r for r in sweep.read_rows(path) if r["method"] == "fast"]
 
 
 def flag(r, key):
@@ -86,21 +87,13 @@ def main(argv=None):
         for rad in radii:
             pick = (lambda rs: [r for r in rs if r["radius_frac"] == rad and obj in ("pooled", r["object"])])
             sure.append({"object": obj, "radius_frac": rad, **cell(pick(rows), pick(before))})
-    write(out / "sure.csv", sure)
+    sweep.write_rows(out / "sure.csv", sure)
     rel = [{"radius_frac": rad, "bin": f"{lo:.1f}", "count": n, "confidence": c, "strict": s}
            for rad in radii + ["all"]
            for lo, n, c, s in reliability([r for r in rows if rad in ("all", r["radius_frac"])])[0]]
-    write(out / "reliability.csv", rel)
+    sweep.write_rows(out / "reliability.csv", rel)
     (out / "sure.md").write_text(markdown(sure, rel))
-    print((out / "sure.md").read_text())
     return 0
-
-
-def write(path, rows):
-    with open(path, "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]))
-        w.writeheader()
-        w.writerows(rows)
 
 
 def pct(x):
