@@ -131,7 +131,7 @@ def find_hypotheses(model, contacts, tolerance, *, solver="closed-form", prior=N
     if _edges_may_help(model, contacts, tolerance, arrays, deadline, finger_radius):
         skipped = _edges_unaffordable(model, deadline)
         if skipped:
-            return arrays, timing, grown, skipped
+            return arrays, timing, grown, "; ".join(note for note in (widened, skipped) if note)
         found = edge_hypotheses(model, contacts, tolerance, timing, prior=prior, deadline=deadline, progress=progress)
         fitting = np.flatnonzero(found.chi2 <= fit_threshold(contacts.n))
         if len(fitting):
@@ -431,8 +431,8 @@ def classify(model, contacts, arrays, tolerance, *, bound=True, deadline=None, n
 
     bound : the fit test, the in-facet lower bound on each hypothesis's best χ²
     (scoring.infacet), or, False, the χ² at its pose (the paper's). ok_probability : with it,
-    the placements modulo symmetry are weighed by their Laplace evidence
-    (scoring.placements) and "ok" needs the best pose strictly right with at least this
+    the placements modulo symmetry are weighed by their evidence (scoring.placements) and
+    "ok" needs the best pose strictly right with at least this
     probability; None: the placements are not weighed (the paper's rule); prior : a
     PosePrior, whose density weighs the placements too. notes : what
     earlier stages did, joined to the hint. Returns (list of PoseClass, status, hint, list of
