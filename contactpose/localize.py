@@ -34,10 +34,13 @@ from contactpose.progress import Deadline
 from contactpose.scoring.freespace import drop_blocked, drop_intersecting
 from contactpose.scoring.status import units_message
 from contactpose.solvers.polish import lowest_chi2_bound
+from contactpose.solvers.surface import SURFACE_REFINE
 from contactpose.types import HypothesisList, PosePrior, Result
 
 #: Seconds a search may take by default before it returns what it found (status "time_limit").
 DEFAULT_TIME_LIMIT = 60.0
+#: The default method's searches (localize's ``search``).
+SEARCHES = ("auto", "samples")
 #: Contacts spread wider than this many object diameters are an input error (units).
 UNITS_ERROR_RATIO = 10.0
 #: warm_up calls localize at most this often, and within this many seconds: the banana's calls
@@ -45,14 +48,14 @@ UNITS_ERROR_RATIO = 10.0
 WARM_UP_CALLS = 20
 WARM_UP_SECONDS = 0.25
 
-__all__ = ["DEFAULT_TIME_LIMIT", "localize", "warm_up"]
+__all__ = ["DEFAULT_TIME_LIMIT", "SEARCHES", "localize", "warm_up"]
 
 
 def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prior=None,
              method="fast", solver=None, top=None, model_error=0.0, max_outliers=0, robust="huber",
              refine=DEFAULT_REFINE, samples=0, seed=None, sample_top=1, finger_radius=None,
              time_limit=DEFAULT_TIME_LIMIT, progress=None, distinct=True, surface="auto", keep="fitting", tree=None,
-             diagnose=True, twins=False, ok_probability=OK_PROBABILITY, free_space=None):
+             diagnose=True, twins=False, ok_probability=OK_PROBABILITY, free_space=None, search="auto"):
     """Find every admissible finger-to-facet assignment and the object pose behind each.
 
     model : ObjectModel; contacts : Contacts (world frame); position_noise : per-axis σ of
@@ -115,6 +118,11 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
     ``result.placements``); short of it the answer is "ambiguous" (the placements and their
     probabilities in the hint) or "underdetermined" (how loosely the contacts pin the pose).
     "fast" only; the paper's rule is the classes' likelihood shares.
+    search : the default method's search. "auto": the model's facet table or its surface
+    regions (region tuples joined by the tree); "samples": hypothesize and verify over
+    oriented surface samples (stages.verified_hypotheses, research/verify_search.md; no join,
+    no widenings), its best poses fitted on the surface contact model. Not yet the default:
+    its measured completeness and cost are in the note.
     diagnose : for an empty or poor answer ("fast"), test its likely causes by localizing again
     with the input changed, within what is left of time_limit, and name the one that holds in
     ``result.diagnosis`` and the hint (contactpose.diagnosis); False skips the tests
@@ -138,7 +146,14 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
     start = time.perf_counter()
     fast, grown, notes = method == "fast", None, ()
     merge_twins = not twins and prior is None
-    if fast:
+    if search not in SEARCHES:
+        raise ContactPoseError(f"search must be one of {SEARCHES}, got {search!r}")
+    if search != "auto" and not fast:
+        raise ContactPoseError(f"search={search!r} is the default method's; method='paper' searches its facet table")
+    samples_search = fast and search == "samples"
+    if samples_search:
+        arrays, timing = stages.verified_hypotheses(model, contacts, tolerance, deadline=deadline)
+    elif fast:
         arrays, timing, grown, widened = stages.find_hypotheses(
             model, contacts, tolerance, solver="closed-form" if solver == "factor-graph" else solver, prior=prior,
             max_outliers=max_outliers, deadline=deadline, progress=progress, tree=tree, finger_radius=finger_radius)
@@ -155,17 +170,20 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
         notes += (note,)
     assignments = len(arrays.cost)
     if fast and distinct:
-        refit, every = surface and solver == "closed-form", arrays
+        refit, every = (surface or samples_search) and solver == "closed-form", arrays
         with _clock(timing, "rank"):  # twins merge after the surface fit: it fits the same best as without
             arrays = stages.distinct(model, arrays, tolerance, deadline, merge_twins=merge_twins and not refit)
         if refit:
             with _clock(timing, "pose"):
                 arrays = stages.surface_hypotheses(model, contacts, arrays, tolerance, deadline,
+                                                   stages.VERIFIED_FITS if samples_search else SURFACE_REFINE,
                                                    merge_twins=merge_twins, every=every, multistart=True)
-            arrays, note = stages.with_widened_normals(model, contacts, arrays, tolerance, timing,  # its own clock
-                                                       finger_radius=finger_radius, prior=prior, deadline=deadline,
-                                                       progress=progress, merge_twins=merge_twins)
-            notes += (note,)
+            if not samples_search:
+                arrays, note = stages.with_widened_normals(model, contacts, arrays, tolerance, timing,  # own clock
+                                                           finger_radius=finger_radius, prior=prior,
+                                                           deadline=deadline, progress=progress,
+                                                           merge_twins=merge_twins)
+                notes += (note,)
     if solver == "factor-graph":
         with _clock(timing, "refine"):
             arrays, rescue = stages.refine_hypotheses(model, contacts, arrays, tolerance, prior=prior, robust=robust,

@@ -38,10 +38,12 @@ from contactpose.scoring.placements import placements
 from contactpose.scoring.status import status as status_of
 from contactpose.search.grow import grow_tree, triple_test, warn_explosion
 from contactpose.search.tree import join_tuples
+from contactpose.search.verify import candidate_poses
 from contactpose.solvers.closed_form import fit_poses
 from contactpose.solvers.lm import fit_lm_all
 from contactpose.solvers.polish import polished
 from contactpose.solvers.surface import SURFACE_REFINE, multistart_poses, surface_poses
+from contactpose.types import PoseFit
 
 #: When nothing matches, the pair tolerances are widened by these factors in turn.
 WIDEN_SCHEDULE = (1.5, 2.0)
@@ -79,12 +81,15 @@ ROW_COPIES = 3
 POST_SECONDS_PER_ROW = 4e-6
 #: With keep="fitting", a search none of whose hypotheses fits within noise lists its best this many.
 POOR_FIT_LISTED = 10
+#: Clusters of the search by hypothesize and verify that become hypotheses, best first.
+VERIFIED_FITS = 64
 #: The search's stage times, in seconds, as every Result's timing starts.
 SEARCH_STAGES = ("pairs", "tree", "pose", "rank")
 
 __all__ = ["POOR_FIT_LISTED", "SEARCH_STAGES", "classify", "distinct", "find_hypotheses",
            "join_hypotheses", "listed", "listed_rows", "polish_hypotheses", "pose_hypotheses", "rank_hypotheses",
-           "refine_hypotheses", "search", "surface_hypotheses", "edge_hypotheses", "with_widened_normals"]
+           "refine_hypotheses", "search", "surface_hypotheses", "edge_hypotheses", "verified_hypotheses",
+           "with_widened_normals"]
 
 
 # ------------------------------------------------------------------ search ---
@@ -139,6 +144,24 @@ def find_hypotheses(model, contacts, tolerance, *, solver="closed-form", prior=N
             arrays = _first_of_each_tuple(arrays)
             widened = EDGES_NOTE
     return arrays, timing, grown, widened
+
+
+def verified_hypotheses(model, contacts, tolerance, *, deadline=None):
+    """The hypotheses of the search by hypothesize and verify (search.verify,
+    research/verify_search.md): the best VERIFIED_FITS of its clusters, each contact assigned
+    its best-fitting facet at the cluster's pose (costs.association.nearest_fit_facets),
+    ranked. -> (HypothesisArrays ranked, seconds per stage (SEARCH_STAGES))"""
+    start = time.perf_counter()
+    found = candidate_poses(model.oriented, contacts, tolerance, model.diameter).take(slice(0, VERIFIED_FITS))
+    searched = time.perf_counter()
+    fit = PoseFit(found.R, found.t, np.zeros((len(found), 3, 3)), np.zeros((len(found), 3), dtype=bool),
+                  np.zeros((len(found), 3)), np.zeros(len(found), dtype=bool))
+    poses = fit.poses()
+    facets = nearest_fit_facets(model, contacts, poses, tolerance) if len(found) else np.zeros((0, contacts.n), int)
+    posed = time.perf_counter()
+    arrays = ranking.hypothesis_arrays(model, contacts, facets, fit, tolerance)
+    done = time.perf_counter()
+    return arrays, {"pairs": 0.0, "tree": searched - start, "pose": posed - searched, "rank": done - posed}
 
 
 def _edges_unaffordable(model, deadline):

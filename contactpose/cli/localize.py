@@ -16,7 +16,7 @@ from contactpose.cli.common import (
     warn_in_vain,
 )
 from contactpose.io import jsonfiles
-from contactpose.localize import DEFAULT_TIME_LIMIT, localize
+from contactpose.localize import DEFAULT_TIME_LIMIT, SEARCHES, localize
 from contactpose.options import KEEP, METHODS, OK_PROBABILITY, OUTLIER_PENALTY, ROBUST, SOLVERS, fit_threshold
 from contactpose.scoring.status import DIAGNOSED
 from contactpose.stages import POOR_FIT_LISTED
@@ -79,6 +79,9 @@ def register(sub):
     p.add_argument("--ok-probability", type=float, default=OK_PROBABILITY, metavar="P",
                    help="status ok needs the best pose strictly right (within 5 degrees and 5 %% of the diameter, "
                         f"modulo symmetry) with at least this probability (default: {OK_PROBABILITY:g})")
+    p.add_argument("--search", choices=SEARCHES, default="auto",
+                   help="the default method's search: auto (the model's facet table or surface regions) or samples "
+                        "(hypothesize and verify over oriented surface samples; not yet the default)")
     p.add_argument("--strict", action="store_true",
                    help=f"exit with code {EXIT_STRICT} when the answer is empty or poor (status "
                         f"{' or '.join(DIAGNOSED)}; the hint and the JSON's diagnosis name the cause)")
@@ -128,7 +131,7 @@ def run(args):
                       max_outliers=args.max_outliers, samples=args.samples, seed=args.seed,
                       finger_radius=args.finger_radius, time_limit=args.time_limit or None,
                       surface="auto" if args.surface is None else args.surface, keep=args.keep, model_error=args.model_error,
-                      twins=args.twins, ok_probability=args.ok_probability,
+                      twins=args.twins, ok_probability=args.ok_probability, search=args.search,
                       refine=DEFAULT_REFINE if args.refine is None else args.refine)
     warn_options_in_vain(args)  # after the checks: bad input gets its one error line only
     if args.output:

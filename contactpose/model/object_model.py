@@ -590,6 +590,14 @@ class ObjectModel:
         return cache[key]
 
     @cached_property
+    def oriented(self):
+        """The oriented surface samples, their pair features and field (model.oriented), built
+        on first use: what the search by hypothesize and verify matches contacts against."""
+        from contactpose.model.oriented import OrientedSamples
+
+        return OrientedSamples.of(self)
+
+    @cached_property
     def centroid_tree(self):
         """(scipy cKDTree over the valid facets' centroids, those facets (F,) int, their largest
         radius): a nearest-facet search that can bound what it has not looked at."""
