@@ -171,8 +171,9 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
     assignments = len(arrays.cost)
     if fast and distinct:
         refit, every = (surface or samples_search) and solver == "closed-form", arrays
-        with _clock(timing, "rank"):  # twins merge after the surface fit: it fits the same best as without
-            arrays = stages.distinct(model, arrays, tolerance, deadline, merge_twins=merge_twins and not refit)
+        if not samples_search:  # the samples' clusters are few: each is fitted, near-copies merge after
+            with _clock(timing, "rank"):  # twins merge after the surface fit: it fits the same best as without
+                arrays = stages.distinct(model, arrays, tolerance, deadline, merge_twins=merge_twins and not refit)
         if refit:
             with _clock(timing, "pose"):
                 arrays = stages.surface_hypotheses(model, contacts, arrays, tolerance, deadline,

@@ -83,6 +83,8 @@ POST_SECONDS_PER_ROW = 4e-6
 POOR_FIT_LISTED = 10
 #: Clusters of the search by hypothesize and verify that become hypotheses, best first.
 VERIFIED_FITS = 64
+#: Rounds of iterated closest facets from each cluster's pose (verified_hypotheses).
+CLOSEST_FACET_ROUNDS = 2
 #: The search's stage times, in seconds, as every Result's timing starts.
 SEARCH_STAGES = ("pairs", "tree", "pose", "rank")
 
@@ -149,19 +151,30 @@ def find_hypotheses(model, contacts, tolerance, *, solver="closed-form", prior=N
 def verified_hypotheses(model, contacts, tolerance, *, deadline=None):
     """The hypotheses of the search by hypothesize and verify (search.verify,
     research/verify_search.md): the best VERIFIED_FITS of its clusters, each contact assigned
-    its best-fitting facet at the cluster's pose (costs.association.nearest_fit_facets),
-    ranked. -> (HypothesisArrays ranked, seconds per stage (SEARCH_STAGES))"""
+    its best-fitting facet at the cluster's pose (costs.association.nearest_fit_facets), and
+    beside each the closed-form pose on those facets with its contacts assigned again there
+    (one step of iterated closest facets: a cluster's pose is a few degrees off, so its
+    assignment can be a neighbour's); ranked, a facet tuple found twice kept once.
+    -> (HypothesisArrays ranked, seconds per stage (SEARCH_STAGES))"""
     start = time.perf_counter()
-    found = candidate_poses(model.oriented, contacts, tolerance, model.diameter).take(slice(0, VERIFIED_FITS))
+    found = candidate_poses(model.oriented, contacts, tolerance, model.diameter, deadline).take(slice(0, VERIFIED_FITS))
     searched = time.perf_counter()
+    if not len(found):
+        arrays = ranking.closed_form_arrays(model, contacts, np.zeros((0, contacts.n), dtype=np.int64), tolerance)
+        return arrays, {"pairs": 0.0, "tree": searched - start, "pose": 0.0, "rank": 0.0}
     fit = PoseFit(found.R, found.t, np.zeros((len(found), 3, 3)), np.zeros((len(found), 3), dtype=bool),
                   np.zeros((len(found), 3)), np.zeros(len(found), dtype=bool))
-    poses = fit.poses()
-    facets = nearest_fit_facets(model, contacts, poses, tolerance) if len(found) else np.zeros((0, contacts.n), int)
-    posed = time.perf_counter()
-    arrays = ranking.hypothesis_arrays(model, contacts, facets, fit, tolerance)
+    facets = nearest_fit_facets(model, contacts, fit.poses(), tolerance)
+    rounds = [ranking.hypothesis_arrays(model, contacts, facets, fit, tolerance)]
+    for _ in range(CLOSEST_FACET_ROUNDS):
+        rounds.append(ranking.closed_form_arrays(model, contacts, facets, tolerance, order=False))
+        facets = nearest_fit_facets(model, contacts, rounds[-1].poses, tolerance)
+    rounds.append(ranking.closed_form_arrays(model, contacts, facets, tolerance))
     done = time.perf_counter()
-    return arrays, {"pairs": 0.0, "tree": searched - start, "pose": posed - searched, "rank": done - posed}
+    arrays = rounds[0].merged(*rounds[1:])
+    arrays = _first_of_each_tuple(ranking.ranked(arrays))
+    return arrays, {"pairs": 0.0, "tree": searched - start, "pose": done - searched,
+                    "rank": time.perf_counter() - done}
 
 
 def _edges_unaffordable(model, deadline):

@@ -249,7 +249,7 @@ class HypothesisList(Sequence):
         f = a.fit
         return Hypothesis(
             facets=a.facets[i], pose=a.poses[i], cost=float(a.cost[i]), residuals=a.residuals[i],
-            chi2=float(a.chi2[i]), underdetermined=bool(f.underdetermined[i]),
+            chi2=float(a.chi2[i]), underdetermined=bool(f.free_translation_mask[i].any() or f.free_rotation_mask[i]),
             free_translation=f.free_translation[i][f.free_translation_mask[i]],
             free_rotation=f.free_rotation[i] if f.free_rotation_mask[i] else None,
             outliers=np.flatnonzero(a.facets[i] < 0),

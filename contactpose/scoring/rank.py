@@ -60,13 +60,13 @@ def ranked(arrays, cost=None):
     return arrays.take(np.argsort(arrays.cost, kind="stable"))
 
 
-def closed_form_arrays(model, contacts, facets, tolerance, *, prior=None, angle_tol=None):
+def closed_form_arrays(model, contacts, facets, tolerance, *, prior=None, angle_tol=None, order=True):
     """Given facet tuples posed in closed form and ranked as the default method ranks them:
     for tuples found some other way (the true tuple, a rescue, one tuple to sample).
 
     facets : (H, n) int -> HypothesisArrays, best χ² first. angle_tol : the closed form's
     threshold for parallel normals (default: the normal noise); prior : its translation
-    picks the member of a translation family.
+    picks the member of a translation family; order=False keeps the tuples' order.
     """
     facets = np.asarray(facets, dtype=np.int64).reshape(-1, contacts.n)
     t0 = None if prior is None else np.broadcast_to(prior.pose[:3, 3], (len(facets), 3))
@@ -74,7 +74,7 @@ def closed_form_arrays(model, contacts, facets, tolerance, *, prior=None, angle_
                     contacts.finger_normals, cost="invariant",
                     angle_tol=tolerance.normal_noise if angle_tol is None else angle_tol,
                     t0=t0, centroids=model.centroids[facets])
-    return hypothesis_arrays(model, contacts, facets, fit, tolerance)
+    return hypothesis_arrays(model, contacts, facets, fit, tolerance, order=order)
 
 
 def refined_arrays(model, contacts, refinement, fit, tolerance):

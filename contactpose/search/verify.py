@@ -1,6 +1,7 @@
 """The online half of the search by hypothesize and verify (research/verify_search.md): no
 region tuples and no join. Every contact pair is matched against the sample pairs
-(model.oriented) whose features agree within sound slacks; each match is a pose in closed
+(model.oriented) whose features agree within the samples' measured spreads and radii and
+the noise; each match is a pose in closed
 form (two oriented points fix it); every pose is checked against the field, moved by a few
 Gauss–Newton steps onto the samples' tangent planes, checked again, and the poses that pass
 are grouped by a hash of the pose.
@@ -22,9 +23,14 @@ REFINE_STEPS = 3
 #: The steps' trust region: a prior of this turn (radians) on each step, and of the covering
 #: radius plus the pair distance gate on its shift.
 STEP_TURN = np.radians(5.0)
+#: After the first step a candidate is checked again, its turn taken as off by at most the
+#: pair's lean and this much of the roll (radians).
+FIRST_STEP_TURN = np.radians(15.0)
 #: A candidate survives when each contact lies within its gate of its nearest sample after the
 #: steps: distance reach + VERIFY_SIGMA σ_x, normal the sample's spread + VERIFY_SIGMA σ_n.
 VERIFY_SIGMA = 3.0
+#: Matches checked at a time (the grain of the deadline's checks and of the output buffers).
+MATCH_CHUNK = 65_536
 #: The pose hash's cells: rotation (radians) and translation (fraction of the diameter).
 CLUSTER_ROT = np.radians(5.0)
 CLUSTER_TRANS_FRAC = 0.05
@@ -91,31 +97,31 @@ def _frame_into(u0, u1, u2, F):
     F[0, 2], F[1, 2], F[2, 2] = u1 * e2 - u2 * e1, u2 * e0 - u0 * e2, u0 * e1 - u1 * e0
 
 
-@njit(cache=True)
-def _unit_between(x, y, out):
-    out[0], out[1], out[2] = y[0] - x[0], y[1] - x[1], y[2] - x[2]
-    s = np.sqrt(out[0] * out[0] + out[1] * out[1] + out[2] * out[2])
-    out[0], out[1], out[2] = out[0] / s, out[1] / s, out[2] / s
+@njit(cache=True, inline="always")
+def _roll_terms(m0, m1, m2, n0, n1, n2, Fs, Fc):
+    """The two normals' parts across the line, in each frame: (cos part, sin part, leverage)."""
+    s1 = m0 * Fs[0, 1] + m1 * Fs[1, 1] + m2 * Fs[2, 1]
+    s2 = m0 * Fs[0, 2] + m1 * Fs[1, 2] + m2 * Fs[2, 2]
+    c1 = n0 * Fc[0, 1] + n1 * Fc[1, 1] + n2 * Fc[2, 1]
+    c2 = n0 * Fc[0, 2] + n1 * Fc[1, 2] + n2 * Fc[2, 2]
+    return s1 * c1 + s2 * c2, s1 * c2 - s2 * c1, np.sqrt((s1 * s1 + s2 * s2) * (c1 * c1 + c2 * c2))
 
 
-@njit(cache=True)
-def _pair_pose(qa, qb, ma, mb, pi, pj, ni, nj, Fs, Fc, u, R, t):
-    """R (3, 3), t (3,) := the pose that puts qa, qb on pi, pj (the line exactly), turned
-    about it so that the normals ma, mb meet ni, nj in least squares. Fs, Fc, u: scratch.
-    -> the turn's leverage w (the normals' lengths across the line, summed)"""
-    _unit_between(qa, qb, u)
-    _frame_into(u[0], u[1], u[2], Fs)
-    _unit_between(pi, pj, u)
-    _frame_into(u[0], u[1], u[2], Fc)
-    re, im, w = 0.0, 0.0, 0.0
-    for m, n in ((ma, ni), (mb, nj)):
-        s1 = m[0] * Fs[0, 1] + m[1] * Fs[1, 1] + m[2] * Fs[2, 1]
-        s2 = m[0] * Fs[0, 2] + m[1] * Fs[1, 2] + m[2] * Fs[2, 2]
-        c1 = n[0] * Fc[0, 1] + n[1] * Fc[1, 1] + n[2] * Fc[2, 1]
-        c2 = n[0] * Fc[0, 2] + n[1] * Fc[1, 2] + n[2] * Fc[2, 2]
-        re += s1 * c1 + s2 * c2
-        im += s1 * c2 - s2 * c1
-        w += np.sqrt((s1 * s1 + s2 * s2) * (c1 * c1 + c2 * c2))
+@njit(cache=True, inline="always")
+def _pair_pose(Q, M, a, b, p, nu, i, j, Fs, Fc, R, t):
+    """R (3, 3), t (3,) := the pose that puts samples a, b (points Q, normals M) on contacts
+    i, j (points p, outward normals nu), the line exactly, turned about it so that the normals
+    meet in least squares. Fs, Fc: scratch. -> the turn's leverage w (the normals' lengths
+    across the line, summed)"""
+    u0, u1, u2 = Q[b, 0] - Q[a, 0], Q[b, 1] - Q[a, 1], Q[b, 2] - Q[a, 2]
+    h = np.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
+    _frame_into(u0 / h, u1 / h, u2 / h, Fs)
+    u0, u1, u2 = p[j, 0] - p[i, 0], p[j, 1] - p[i, 1], p[j, 2] - p[i, 2]
+    h = np.sqrt(u0 * u0 + u1 * u1 + u2 * u2)
+    _frame_into(u0 / h, u1 / h, u2 / h, Fc)
+    re, im, w = _roll_terms(M[a, 0], M[a, 1], M[a, 2], nu[i, 0], nu[i, 1], nu[i, 2], Fs, Fc)
+    re2, im2, w2 = _roll_terms(M[b, 0], M[b, 1], M[b, 2], nu[j, 0], nu[j, 1], nu[j, 2], Fs, Fc)
+    re, im, w = re + re2, im + im2, w + w2
     h = np.sqrt(re * re + im * im)
     c, s = (re / h, im / h) if h > 0 else (1.0, 0.0)
     for r in range(3):  # R = Fc turn Fsᵀ, turn about the first axis by (c, s)
@@ -123,8 +129,8 @@ def _pair_pose(qa, qb, ma, mb, pi, pj, ni, nj, Fs, Fc, u, R, t):
         for k in range(3):
             R[r, k] = g0 * Fs[k, 0] + g1 * Fs[k, 1] + g2 * Fs[k, 2]
     for r in range(3):
-        t[r] = 0.5 * (pi[r] + pj[r]) - 0.5 * (R[r, 0] * (qa[0] + qb[0]) + R[r, 1] * (qa[1] + qb[1])
-                                            + R[r, 2] * (qa[2] + qb[2]))
+        t[r] = 0.5 * (p[i, r] + p[j, r]) - 0.5 * (R[r, 0] * (Q[a, 0] + Q[b, 0]) + R[r, 1] * (Q[a, 1] + Q[b, 1])
+                                                + R[r, 2] * (Q[a, 2] + Q[b, 2]))
     return w
 
 
@@ -143,7 +149,7 @@ def _turn_back(R, n, v):
         v[r] = R[0, r] * n[0] + R[1, r] * n[1] + R[2, r] * n[2]
 
 
-@njit(cache=True)
+@njit(cache=True, inline="always")
 def _nearest(x, origin, cell, nearest):
     """The field's sample for the object-frame point x, -1 outside it."""
     i0 = int(np.floor((x[0] - origin[0]) / cell + 0.5))
@@ -238,13 +244,15 @@ def _cholesky_solve(H, g):
         g[r] = s / H[r, r]
 
 
-@njit(cache=True)
-def _check(R, t, p, nu, Q, M, S, other, origin, cell, nearest, gate_x, gate_n, lever, slack, sx, sn, found, x, v):
+@njit(cache=True, inline="always")
+def _check(R, t, p, nu, Q, M, S, other, origin, cell, nearest, gate_x, gate_n, lever, slack, sx, sn, found, x, v,
+           order):
     """The cost Σ (plane offset / sx)² + (normal excess / sn)² of the pose over the contacts,
     inf unless every contact lies within gate_x + lever[k] slack of its nearest sample and its
-    normal within that sample's spread + gate_n + slack; found[k] := that sample. x, v: scratch."""
+    normal within that sample's spread + gate_n + slack; found[k] := that sample. The contacts
+    are checked in ``order``, the first to fail ending it. x, v: scratch."""
     cost = 0.0
-    for k in range(p.shape[0]):
+    for k in order:
         _to_object(R, t, p[k], x)
         s = _nearest(x, origin, cell, nearest)
         if s < 0:
@@ -282,29 +290,32 @@ def _verify_matches(a, b, Q, M, S, other, p, nu, i, j, origin, cell, nearest, ga
         d0, d1, d2 = p[k, 0] - 0.5 * (p[i, 0] + p[j, 0]), p[k, 1] - 0.5 * (p[i, 1] + p[j, 1]), \
             p[k, 2] - 0.5 * (p[i, 2] + p[j, 2])
         lever[k] = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+    order = np.argsort(lever)  # the others, least lever first; the pair's own last (they fit by construction)
+    order = np.concatenate((order[(order != i) & (order != j)], np.array([i, j])))
     found = np.empty(n, dtype=np.int64)
     R, t = np.empty((3, 3)), np.empty(3)
-    Fs, Fc, u, x, v = np.empty((3, 3)), np.empty((3, 3)), np.empty(3), np.empty(3), np.empty(3)
+    Fs, Fc, x, v = np.empty((3, 3)), np.empty((3, 3)), np.empty(3), np.empty(3)
     H, g, J, T = np.empty((6, 6)), np.empty(6), np.empty(6), np.empty((3, 4))
     count = 0
     for c in range(a.shape[0]):
-        w = _pair_pose(Q[a[c]], Q[b[c]], M[a[c]], M[b[c]], p[i], p[j], nu[i], nu[j], Fs, Fc, u, R, t)
+        w = _pair_pose(Q, M, a[c], b[c], p, nu, i, j, Fs, Fc, R, t)
         roll = min(np.pi, (S[a[c]] + S[b[c]] + 2.0 * gate_n) / max(w, 0.2))
         if np.isinf(_check(R, t, p, nu, Q, M, S, other, origin, cell, nearest, gate_x + shift, gate_n, lever, lean + roll, sx,
-                           sn, found, x, v)):
-            continue
-        if steps == 0:
-            out_R[count], out_t[count], out_cost[count], out_s[count] = R, t, 0.0, found
-            count += 1
+                           sn, found, x, v, order)):
             continue
         moved = True
-        for _ in range(steps):
+        for step in range(steps):
             moved = _gn_step(R, t, p, nu, Q, M, S, other, origin, cell, nearest, sx, sn, shift, x, v, H, g, J, T)
             if not moved:
                 break
+            if step == 0 and np.isinf(_check(R, t, p, nu, Q, M, S, other, origin, cell, nearest, gate_x + shift,
+                                             gate_n, lever, lean + min(roll, FIRST_STEP_TURN), sx, sn, found, x, v,
+                                             order)):
+                moved = False
+                break
         if not moved:
             continue
-        cost = _check(R, t, p, nu, Q, M, S, other, origin, cell, nearest, gate_x, gate_n, zero, 0.0, sx, sn, found, x, v)
+        cost = _check(R, t, p, nu, Q, M, S, other, origin, cell, nearest, gate_x, gate_n, zero, 0.0, sx, sn, found, x, v, order)
         if np.isinf(cost):
             continue
         out_R[count], out_t[count], out_cost[count], out_s[count] = R, t, cost, found
@@ -326,24 +337,32 @@ def clustered(candidates, diameter):
     return candidates.take(best[np.argsort(candidates.cost[best], kind="stable")])
 
 
-def candidate_poses(oriented, contacts, tolerance, diameter):
+def candidate_poses(oriented, contacts, tolerance, diameter, deadline=None):
     """Every verified, clustered candidate of the contacts (Contacts) on the oriented model
-    (model.oriented.OrientedSamples). -> Candidates, ordered by cost"""
+    (model.oriented.OrientedSamples), the matches checked MATCH_CHUNK at a time until the
+    deadline (a progress.Deadline) passes (then ``deadline.hit``). -> Candidates, ordered by
+    cost"""
     p = np.ascontiguousarray(contacts.points)
     nu = np.ascontiguousarray(contacts.object_normals)
     n = contacts.n
     gate_x = oriented.reach + VERIFY_SIGMA * tolerance.position_noise
     gate_n = VERIFY_SIGMA * tolerance.normal_noise
-    sx, sn = tolerance.position_noise, tolerance.normal_noise
     shift = oriented.covering + tolerance.distance
+    out = (np.empty((MATCH_CHUNK, 3, 3)), np.empty((MATCH_CHUNK, 3)), np.empty(MATCH_CHUNK),
+           np.empty((MATCH_CHUNK, n), np.int64))
     parts = []
     for i, j in combinations(range(n), 2):
         a, b = pair_matches(oriented, p[[i, j]], nu[[i, j]], tolerance)
-        d = float(np.linalg.norm(p[j] - p[i]))
-        lean = float(np.arcsin(min(1.0, (2.0 * oriented.covering + tolerance.distance) / d)))
-        out = (np.empty((len(a), 3, 3)), np.empty((len(a), 3)), np.empty(len(a)), np.empty((len(a), n), np.int64))
-        k = _verify_matches(a, b, oriented.points, oriented.normals, oriented.spreads, oriented.other_side, p, nu, i, j, oriented.origin,
-                            oriented.cell, oriented.nearest, gate_x, gate_n, lean, shift, sx, sn, REFINE_STEPS, *out)
-        parts.append(Candidates(*(x[:k] for x in out)))
+        lean = float(np.arcsin(min(1.0, (2.0 * oriented.covering + tolerance.distance) / np.linalg.norm(p[j] - p[i]))))
+        for lo in range(0, len(a), MATCH_CHUNK):
+            if deadline is not None and deadline.passed:
+                break
+            k = _verify_matches(a[lo:lo + MATCH_CHUNK], b[lo:lo + MATCH_CHUNK], oriented.points, oriented.normals,
+                                oriented.spreads, oriented.other_side, p, nu, i, j, oriented.origin, oriented.cell,
+                                oriented.nearest, gate_x, gate_n, lean, shift, tolerance.position_noise,
+                                tolerance.normal_noise, REFINE_STEPS, *out)
+            parts.append(Candidates(*(x[:k].copy() for x in out)))
+    if not parts:
+        return Candidates(*(x[:0].copy() for x in out))
     every = Candidates(*(np.concatenate([getattr(c, f) for c in parts]) for f in ("R", "t", "cost", "samples")))
     return clustered(every, diameter)

@@ -57,8 +57,7 @@ def test_pair_pose_recovers_a_known_motion():
         R0, t0 = Rotation.random(random_state=rng).as_matrix(), rng.normal(size=3)
         p, nu = q @ R0.T + t0, m @ R0.T
         R, t = np.empty((3, 3)), np.empty(3)
-        _pair_pose(q[0], q[1], m[0], m[1], p[0], p[1], nu[0], nu[1], np.empty((3, 3)), np.empty((3, 3)),
-                   np.empty(3), R, t)
+        _pair_pose(q, m, 0, 1, p, nu, 0, 1, np.empty((3, 3)), np.empty((3, 3)), R, t)
         np.testing.assert_allclose(R, R0, atol=1e-9)
         np.testing.assert_allclose(t, t0, atol=1e-9)
 
@@ -118,3 +117,11 @@ def test_paper_method_refuses_another_search(ycb_banana):
     _, contacts = _grasp(ycb_banana, np.random.default_rng(0), 0.0)
     with pytest.raises(ContactPoseError, match="method='paper' searches its facet table"):
         localize(ycb_banana, contacts, method="paper", search="samples")
+
+
+def test_the_time_limit_bounds_the_search(ycb_banana):
+    """A time limit that has passed before the first chunk: nothing is checked, and the answer
+    says the search stopped there."""
+    _, contacts = _grasp(ycb_banana, np.random.default_rng(1), 0.02)
+    r = localize(ycb_banana, contacts, search="samples", time_limit=1e-9, diagnose=False)
+    assert r.status == "time_limit" and len(r.hypotheses) == 0
