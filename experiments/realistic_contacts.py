@@ -91,7 +91,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from contactpose import peers as bl
-from contactpose.contacts import Contacts
+from contactpose.contacts import Contacts, FreeSpace
 from contactpose.geometry import metrics
 from contactpose.geometry.raycast import raycaster
 from contactpose.geometry.sampling import perturb_normals
@@ -112,7 +112,13 @@ from contactpose.stages import listed_rows
 
 NAME = "realistic_contacts"
 log = logging.getLogger(NAME)
-METHODS = ("fast", "paper", "icp-multistart", "scaling-series", "ss-published", "ss-published-timed", "chsel")
+METHODS = ("fast", "fast-free", "fast-samples", "paper", "icp-multistart", "scaling-series", "ss-published",
+           "ss-published-timed", "chsel")
+#: The default method's variants on the same grasps: given the free space the fingertips swept
+#: (the points CHSEL gets), and with the search by hypothesize and verify.
+VARIANTS = {"fast-free": "free_space", "fast-samples": "search"}
+#: The methods of this library: status and hypothesis columns in the summary.
+OURS = ("fast", "fast-free", "fast-samples", "paper")
 #: Where the true assignment is lost, in pipeline order; "first": it is ranked first.
 STAGES = ("table", "tree", "fit", "ranking", "first")
 STAGE_TEXT = {"table": "table: a true pair not in S_ij", "tree": "tree: pairs there, tuple not listed",
@@ -471,6 +477,10 @@ def task(settings, rng, *, cfg, cache):
         true_sets = [incident_facets(s, f, p, k) for f, p, k in zip(facets, points, kinds)]
         row.update(truth_columns(s, contacts, r, true_sets, facets, cfg))
         rows.append({"method": "fast", **grasp, **row})
+    for method, option in VARIANTS.items():
+        if method in run:
+            value = FreeSpace(points=free) if option == "free_space" else "samples"
+            rows.append({"method": method, **grasp, **ours(s, contacts, pose, noise, cfg, **{option: value})[1]})
     # the paper's method, within its time cap
     if "paper" in run and seed < cfg["paper_grasps"]:
         small = model if model.table is not None else paper_model(name, cache, cfg)
@@ -657,9 +667,9 @@ def summary_row(c, sel, obj, frac, method, split):
     mssd = c.get("mssd_mm")  # runs before it had no MSSD
     row["ar_mssd"] = metrics.ar_mssd(mssd[ran], float(c["diameter_mm"][sel][0])) if k and mssd is not None else np.nan
     for st in STATUSES:
-        row[f"status_{st}"] = int(np.sum(c["status"][ran] == st)) if method in ("fast", "paper") else ""
+        row[f"status_{st}"] = int(np.sum(c["status"][ran] == st)) if method in OURS else ""
     row["no_hypothesis"] = row["hypotheses_median"] = row["returned_median"] = np.nan
-    if method in ("fast", "paper"):   # a run of peers alone has no hypothesis columns
+    if method in OURS:   # a run of peers alone has no hypothesis columns
         row["no_hypothesis"] = float(np.mean(c["num_hypotheses"][ran] == 0)) if k else np.nan
         row["hypotheses_median"] = pct(c["num_hypotheses"][ran], 50)
         returned = c.get("num_returned", c["num_hypotheses"])   # runs before keep="fitting" listed every hypothesis
@@ -771,6 +781,8 @@ def summary_markdown(rows, models, cfg_text, cfg=None):
 def budget(method, cfg):
     """The time or work each method was given per grasp, in words."""
     return {"fast": f"time limit {DEFAULT_TIME_LIMIT:g} s",
+            "fast-free": f"time limit {DEFAULT_TIME_LIMIT:g} s, the swept free space",
+            "fast-samples": f"time limit {DEFAULT_TIME_LIMIT:g} s, search=\"samples\"",
             "paper": f"time limit {cfg.get('paper_time_limit', float('nan')):g} s",
             "icp-multistart": "32 starts", "scaling-series": "2,000 particles",
             "ss-published": f"M = {cfg.get('published_per_neighbourhood')}, its whole schedule",
@@ -880,7 +892,8 @@ def plot(out_dir):
         ax.set_title("where the truth is lost: ADD-S (left), strict (hatched)")
         ax.legend(fontsize=5.5, frameon=False, loc="upper left")
         ax = axes[1, 1]
-        method_style = {"fast": ("o", "tab:blue"), "paper": ("s", "tab:cyan"), "icp-multistart": ("v", "tab:red"),
+        method_style = {"fast": ("o", "tab:blue"), "fast-free": ("o", "tab:brown"), "fast-samples": ("*", "tab:pink"),
+                        "paper": ("s", "tab:cyan"), "icp-multistart": ("v", "tab:red"),
                         "scaling-series": ("D", "tab:green"), "ss-published": ("P", "olive"),
                         "ss-published-timed": ("X", "tab:olive"), "chsel": ("^", "tab:purple")}
         grasps = sweep.read_columns(out / "timings.csv")
@@ -927,7 +940,7 @@ def summary(out_dir):
 # --------------------------------------------------------------------------- driver
 
 #: Config key of the grasps each method runs on (the default method: every grasp).
-GRASPS_KEY = {"fast": "seeds", "paper": "paper_grasps", "icp-multistart": "baseline_grasps",
+GRASPS_KEY = {"fast": "seeds", "fast-free": "seeds", "fast-samples": "seeds", "paper": "paper_grasps", "icp-multistart": "baseline_grasps",
               "scaling-series": "baseline_grasps", "ss-published": "published_grasps",
               "ss-published-timed": "published_grasps", "chsel": "chsel_grasps"}
 

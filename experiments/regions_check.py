@@ -36,6 +36,13 @@ CONFIG = json.loads((ROOT / "experiments" / "configs" / "realistic_contacts.json
 
 def grasp(model, vertices, faces, rng, radius):
     """Contacts and the true pose of one grasp. -> (Contacts, pose, face_only)"""
+    return grasp_with_free_space(model, vertices, faces, rng, radius)[:3]
+
+
+def grasp_with_free_space(model, vertices, faces, rng, radius):
+    """:func:`grasp`, and the free space the fingertips of the hitting draw swept before they
+    touched (world frame, free_spacing_frac of the diameter apart, without noise; it draws
+    nothing). -> (Contacts, pose, face_only, points (F, 3))"""
     D = model.diameter
     pose = simulate.random_pose(rng, max_translation=CONFIG["translation_frac"] * D)
     got = fingertip.approach(vertices, faces, rng, CONFIG["fingers"], radius, cone_deg=CONFIG["cone_deg"],
@@ -47,7 +54,8 @@ def grasp(model, vertices, faces, rng, radius):
     sx = CONFIG["position_noise_frac"] * D
     world = got.points @ R.T + t + rng.normal(0.0, sx, got.points.shape)
     finger = perturb_normals(-(got.normals @ R.T), np.radians(CONFIG["normal_noise_deg"]), rng)
-    return Contacts(world, finger_normals=finger), pose, all(str(k) == fingertip.FACE for k in got.features)
+    free = fingertip.swept_free_points(got, CONFIG["free_spacing_frac"] * D) @ R.T + t
+    return Contacts(world, finger_normals=finger), pose, all(str(k) == fingertip.FACE for k in got.features), free
 
 
 def check(model, vertices, faces, frac, grasps, seed):
