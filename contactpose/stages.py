@@ -152,9 +152,10 @@ def verified_hypotheses(model, contacts, tolerance, *, deadline=None):
     """The hypotheses of the search by hypothesize and verify (search.verify,
     research/verify_search.md): the best VERIFIED_FITS of its clusters, each contact assigned
     its best-fitting facet at the cluster's pose (costs.association.nearest_fit_facets), and
-    beside each the closed-form pose on those facets with its contacts assigned again there
-    (one step of iterated closest facets: a cluster's pose is a few degrees off, so its
-    assignment can be a neighbour's); ranked, a facet tuple found twice kept once.
+    beside each the poses of CLOSEST_FACET_ROUNDS rounds of iterated closest facets (the
+    closed-form pose on the facets, the contacts assigned again there: a cluster's pose is a
+    few degrees off, so its assignment can be a neighbour's); ranked, a facet tuple found
+    twice kept once.
     -> (HypothesisArrays ranked, seconds per stage (SEARCH_STAGES))"""
     start = time.perf_counter()
     found = candidate_poses(model.oriented, contacts, tolerance, model.diameter, deadline).take(slice(0, VERIFIED_FITS))
@@ -171,8 +172,7 @@ def verified_hypotheses(model, contacts, tolerance, *, deadline=None):
         facets = nearest_fit_facets(model, contacts, rounds[-1].poses, tolerance)
     rounds.append(ranking.closed_form_arrays(model, contacts, facets, tolerance))
     done = time.perf_counter()
-    arrays = rounds[0].merged(*rounds[1:])
-    arrays = _first_of_each_tuple(ranking.ranked(arrays))
+    arrays = _first_of_each_tuple(rounds[0].merged(*rounds[1:]))
     return arrays, {"pairs": 0.0, "tree": searched - start, "pose": done - searched,
                     "rank": time.perf_counter() - done}
 
