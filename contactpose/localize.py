@@ -78,7 +78,7 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
     of rounded fingertips is searched again over the facets, sharp edges and vertices
     (stages.edge_hypotheses; an empty answer always is), on a model of surface regions with
     the normal gates widened (stages.with_widened_normals). free_space : a contactpose.FreeSpace,
-    the space the fingers swept on their way to the contacts (world frame): drop the hypotheses
+    the space the fingers swept on their way to the contacts (world frame): drop the fitted hypotheses
     whose posed object meets it by more than the pair distance tolerance σ_Δ, tested best first
     within a bounded cost (scoring.freespace.drop_intersecting); the hint says how many
     placements it ruled out. time_limit : seconds for the
@@ -164,10 +164,6 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
     if finger_radius is not None:
         with _clock(timing, "free_space"):
             arrays = drop_blocked(model, contacts, arrays, finger_radius)
-    if free_space is not None:
-        with _clock(timing, "free_space"):
-            arrays, note = drop_intersecting(model, contacts, arrays, free_space, tolerance)
-        notes += (note,)
     assignments = len(arrays.cost)
     if fast and distinct:
         refit, every = (surface or samples_search) and solver == "closed-form", arrays
@@ -185,6 +181,10 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
                                                            deadline=deadline, progress=progress,
                                                            merge_twins=merge_twins)
                 notes += (note,)
+    if free_space is not None:  # on the fitted poses: a near-copy's facet pose may cut a path its fit does not
+        with _clock(timing, "free_space"):
+            arrays, note = drop_intersecting(model, contacts, arrays, free_space, tolerance)
+        notes += (note,)
     if solver == "factor-graph":
         with _clock(timing, "refine"):
             arrays, rescue = stages.refine_hypotheses(model, contacts, arrays, tolerance, prior=prior, robust=robust,
