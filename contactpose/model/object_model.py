@@ -516,6 +516,14 @@ class ObjectModel:
         dN = np.stack([vn[:, 1] - vn[:, 0], vn[:, 2] - vn[:, 0]], axis=2)  # (m, 3, 2)
         return dN @ G, vn[:, 0]
 
+    def smooth_normal_at(self, points, facets=None):
+        """(N, 3) :attr:`smooth_normals`' interpolated normal m(p) = n_a + M (p - a) at each
+        point (N, 3) on its facet (N,) (default: facet k for point k), not normalised (NaN on a
+        facet without a plane)."""
+        M, corner = self.smooth_normals
+        facets = np.arange(len(points)) if facets is None else facets
+        return corner[facets] + np.einsum("nij,nj->ni", M[facets], points - self.triangles[facets, 0])
+
     @cached_property
     def crease_edges(self):
         """(m, 3, 12) per facet f and edge j (the topology's: corners j, j+1), where the edge is
@@ -551,12 +559,11 @@ class ObjectModel:
         normal noise. It is far from isotropic: the normal strays across the direction of
         strongest curvature (YCB banana, median axes 1.56° and 0.46°). The mean is the triangle
         rule exact for cubics (corners 3/60, edge midpoints 8/60, centroid 27/60)."""
-        M, corner = self.smooth_normals
         tri = self.triangles
         scatter = np.zeros((len(tri), 3, 3))
         for weight, bary in ((1 / 20, (1, 0, 0)), (1 / 20, (0, 1, 0)), (1 / 20, (0, 0, 1)), (2 / 15, (0.5, 0.5, 0)),
                              (2 / 15, (0, 0.5, 0.5)), (2 / 15, (0.5, 0, 0.5)), (9 / 20, (1 / 3, 1 / 3, 1 / 3))):
-            m = corner + np.einsum("fij,fj->fi", M, np.asarray(bary) @ tri - tri[:, 0])
+            m = self.smooth_normal_at(np.asarray(bary) @ tri)
             d = self.planes.normals - m / np.linalg.norm(m, axis=1, keepdims=True)
             scatter += weight * d[:, :, None] * d[:, None, :]
         return scatter
@@ -576,8 +583,8 @@ class ObjectModel:
         cache = self.__dict__.setdefault("_normal_whitening", {})
         key = (float(normal_noise), float(position_noise))
         if key not in cache:
-            M, corner = self.smooth_normals
-            m = corner + np.einsum("fij,fj->fi", M, self.centroids - self.triangles[:, 0])
+            M = self.smooth_normals[0]
+            m = self.smooth_normal_at(self.centroids)
             size = np.linalg.norm(m, axis=1)
             nu = m / size[:, None]
             Dn = (np.eye(3) - nu[:, :, None] * nu[:, None, :]) @ M / size[:, None, None]

@@ -131,8 +131,7 @@ class PairFeatures:
 
 def _smooth_normals(model, points, facets):
     """(N, 3) the model's smooth normal (model.smooth_normals) at each point on its facet."""
-    M, corner = model.smooth_normals
-    m = corner[facets] + np.einsum("nij,nj->ni", M[facets], points - model.triangles[facets, 0])
+    m = model.smooth_normal_at(points, facets)
     size = np.linalg.norm(m, axis=1, keepdims=True)
     fallback = model.planes.normals[facets]
     return np.where(np.isfinite(size) & (size > 0), m / np.where(size > 0, size, 1.0), fallback)
