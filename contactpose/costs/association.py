@@ -18,6 +18,8 @@ triangle; on a model with crease edges its normal may also lie on an edge's arc 
 
 from __future__ import annotations
 
+from itertools import chain
+
 import numba
 import numpy as np
 from numba import njit
@@ -72,25 +74,25 @@ def nearest_fit_facets(model, contacts, pose, tolerance, pose_covariance=None, c
     p, normals = p.reshape(-1, 3), normals.reshape(-1, 3)  # (H·n, 3), pose by pose
     weight = association_weights(p.reshape(H, n, 3), normals.reshape(H, n, 3), tolerance, pose_covariance).reshape(-1)
 
-    def scored(points, outward, candidates, found=None, found_cost=None, weights=weight):
+    def scored(points, outward, candidates, offsets, found=None, found_cost=None, weights=weight):
         if found is None:
             found, found_cost = np.full(len(points), -1), np.full(len(points), np.inf)
-        return _best_fits(points, outward, candidates, model.triangles, model.planes.normals, model.facet_radii,
-                          weights, found, found_cost, edges)
+        return _best_fits(points, outward, candidates, offsets, model.triangles, model.planes.normals,
+                          model.facet_radii, weights, found, found_cost, edges)
 
     edges = model.crease_edges if creases else np.full((1, 3, 12), np.nan)
 
     if len(valid) <= SCORE_ALL_BELOW:  # a coarse mesh: score every facet
-        every = np.broadcast_to(valid, (H * n, len(valid)))
-        best, _ = scored(p, normals, every)
+        best, _ = scored(p, normals, np.tile(valid, H * n), len(valid) * np.arange(H * n + 1))
     else:
         dist, near = tree.query(p, NEAREST_CANDIDATES)
-        best, cost = scored(p, normals, valid[near])
+        best, cost = scored(p, normals, valid[near].ravel(), NEAREST_CANDIDATES * np.arange(len(p) + 1))
         reach = np.sqrt(cost) + radius  # a facet whose centroid lies farther costs more
         short = np.flatnonzero(dist[:, -1] < reach)
         if short.size:
-            balls = valid[_padded(tree.query_ball_point(p[short], reach[short]), near[short, 0])]
-            best[short] = scored(p[short], normals[short], balls, best[short], cost[short], weight[short])[0]
+            balls, offsets = _flat(tree.query_ball_point(p[short], reach[short]))
+            best[short] = scored(p[short], normals[short], valid[balls], offsets, best[short], cost[short],
+                                 weight[short])[0]
     return best.reshape(n) if single else best.reshape(H, n)
 
 
@@ -121,34 +123,32 @@ NEAREST_CANDIDATES = 48
 SCORE_ALL_BELOW = 1024
 
 
-def _padded(lists, fill):
-    """Ragged index lists -> (m, longest) int, row i padded with fill[i] (an index already
-    scored: the least cost is unchanged)."""
-    longest = max(1, max(len(a) for a in lists))
-    out = np.empty((len(lists), longest), dtype=np.int64)
-    for i, a in enumerate(lists):
-        out[i, :len(a)] = a
-        out[i, len(a):] = fill[i]
-    return out
+def _flat(lists):
+    """Ragged index lists -> (indices (Σ,) int64, offsets (m + 1,) int64): list i at
+    offsets[i]:offsets[i + 1]."""
+    offsets = np.zeros(len(lists) + 1, dtype=np.int64)
+    np.cumsum([len(a) for a in lists], out=offsets[1:])
+    return np.fromiter(chain.from_iterable(lists), dtype=np.int64, count=int(offsets[-1])), offsets
 
 
 @njit(cache=True)
-def _best_fits(p, normals, candidates, triangles, facet_normals, radii, weight, found, found_cost, edges):
+def _best_fits(p, normals, candidates, offsets, triangles, facet_normals, radii, weight, found, found_cost, edges):
     """Each contact's candidate of least fit_cost (the first on a tie), or its ``found`` facet
     of cost ``found_cost`` (m,) when no candidate costs less (-1 and inf: none yet). p, normals
-    : (m, 3) object-frame points and outward normals; candidates : (m, K) int; radii : (F,)
+    : (m, 3) object-frame points and outward normals; candidates (Σ,) int, contact i's at
+    offsets[i]:offsets[i + 1] (offsets (m + 1,)); radii : (F,)
     the facets' radii; weight : (m,) each contact's σ_x²/σ_n² (association_weights); edges :
     ObjectModel.crease_edges, whose edges of a candidate compete with its face
     (costs.smooth.arc_misfits), or one NaN row: none. A candidate whose normal misfit plus (centroid
     distance - radius)² already reaches the least cost so far is not scored further.
     -> (facets (m,) int, their costs (m,), length²: the whitened cost times σ_x²)"""
-    m, K = candidates.shape
+    m = p.shape[0]
     best, cost = np.empty(m, np.int64), np.empty(m)
     creases = len(edges) > 1
     for i in range(m):
         least, pick = found_cost[i], found[i]
-        for j in range(K):
-            f = candidates[i, j]
+        for j in range(offsets[i], offsets[i + 1]):
+            f = candidates[j]
             c = normal_misfit(facet_normals[f], normals[i], weight[i])
             arcs = arc_misfits(normals[i], facet_normals[f], edges[f], weight[i]) if creases else NO_ARCS
             lower = min(c, arcs[0], arcs[1], arcs[2])
