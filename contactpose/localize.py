@@ -151,6 +151,9 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
     if search != "auto" and not fast:
         raise ContactPoseError(f"search={search!r} is the default method's; method='paper' searches its facet table")
     samples_search = fast and search == "samples"
+    if samples_search and max_outliers:
+        raise ContactPoseError(f"max_outliers={max_outliers} needs search='auto': search='samples' checks every "
+                               "contact of a candidate")
     if samples_search:
         arrays, timing = stages.verified_hypotheses(model, contacts, tolerance, deadline=deadline)
     elif fast:

@@ -14,7 +14,6 @@ from itertools import combinations
 
 import numpy as np
 from numba import njit
-from scipy.spatial.transform import Rotation
 
 from contactpose.geometry.se3 import _exp_into
 
@@ -62,21 +61,40 @@ def pair_matches(oriented, p, nu, tolerance):
     d_vec = p[1] - p[0]
     d = float(np.linalg.norm(d_vec))
     u = d_vec / d
-    g = VERIFY_SIGMA * tolerance.normal_noise
     th0, th1, th01 = (float(np.arccos(np.clip(x @ y, -1.0, 1.0))) for x, y in ((nu[0], u), (nu[1], u), (nu[0], nu[1])))
     widest = 2.0 * float(oriented.radii.max()) + tolerance.distance
     sl = feats.within(d - widest, d + widest)
-    fa, fb = feats.first[sl], feats.second[sl]
-    slack_d = oriented.radii[fa] + oriented.radii[fb] + tolerance.distance
-    near = np.abs(feats.distance[sl] - d) <= slack_d
-    fa, fb, slack_d = fa[near], fb[near], slack_d[near]
-    aa, ab, an = feats.angle_first[sl][near], feats.angle_second[sl][near], feats.angle_normals[sl][near]
-    sa, sb = oriented.spreads[fa], oriented.spreads[fb]
-    lean = np.arcsin(np.minimum(1.0, slack_d / d))
-    normals_ok = np.abs(an - th01) <= sa + sb + 2 * g
-    fwd = normals_ok & (np.abs(aa - th0) <= sa + g + lean) & (np.abs(ab - th1) <= sb + g + lean)
-    rev = normals_ok & (np.abs((np.pi - ab) - th0) <= sb + g + lean) & (np.abs((np.pi - aa) - th1) <= sa + g + lean)
-    return np.concatenate([fa[fwd], fb[rev]]).astype(np.int64), np.concatenate([fb[fwd], fa[rev]]).astype(np.int64)
+    a, b = np.empty(2 * (sl.stop - sl.start), np.int64), np.empty(2 * (sl.stop - sl.start), np.int64)
+    k = _matching(feats.first[sl], feats.second[sl], feats.distance[sl], feats.angle_first[sl], feats.angle_second[sl],
+                  feats.angle_normals[sl], oriented.radii, oriented.spreads, d, th0, th1, th01, tolerance.distance,
+                  VERIFY_SIGMA * tolerance.normal_noise, a, b)
+    return a[:k], b[:k]
+
+
+@njit(cache=True)
+def _matching(first, second, distance, angle_first, angle_second, angle_normals, radii, spreads, d, th0, th1, th01, tol_d,
+              g, out_a, out_b):
+    """Write the stored pairs whose distance lies within the samples' radii and tol_d of d and
+    whose angles lie within their spreads, g and the lean of d; each in the order (first,
+    second) where it matches contacts (0, 1) so, then (second, first) where reversed. -> their
+    count"""
+    k = 0
+    for c in range(first.shape[0]):
+        fa, fb = first[c], second[c]
+        slack_d = radii[fa] + radii[fb] + tol_d
+        if abs(distance[c] - d) > slack_d:
+            continue
+        sa, sb = spreads[fa], spreads[fb]
+        if abs(angle_normals[c] - th01) > sa + sb + 2.0 * g:
+            continue
+        lean = np.arcsin(min(1.0, slack_d / d))
+        if abs(angle_first[c] - th0) <= sa + g + lean and abs(angle_second[c] - th1) <= sb + g + lean:
+            out_a[k], out_b[k] = fa, fb
+            k += 1
+        if abs((np.pi - angle_second[c]) - th0) <= sb + g + lean and abs((np.pi - angle_first[c]) - th1) <= sa + g + lean:
+            out_a[k], out_b[k] = fb, fa
+            k += 1
+    return k
 
 
 @njit(cache=True, inline="always")
@@ -278,44 +296,74 @@ def _check(R, t, p, nu, Q, M, S, other, origin, cell, nearest, gate_x, gate_n, l
 
 
 @njit(cache=True)
-def _verify_matches(a, b, Q, M, S, other, p, nu, i, j, origin, cell, nearest, gate_x, gate_n, lean, shift, sx, sn, steps,
-                    out_R, out_t, out_cost, out_s):
-    """Pose, check loosely, refine and check again each match (a[c], b[c]) of the contact pair
-    (i, j): loosely, each contact within ``shift`` more, and what the pair's turn may be off
-    by (lean, and the roll the normals leave) times its lever; the survivors are written
-    from the start of the out_ arrays. -> their count"""
+def _levers(p, i, j):
+    """(lever (n,): each contact's distance from the middle of contacts i and j, order (n,):
+    the others, least lever first, then i and j, which fit by construction)."""
     n = p.shape[0]
-    lever, zero = np.empty(n), np.zeros(n)
+    lever = np.empty(n)
     for k in range(n):
         d0, d1, d2 = p[k, 0] - 0.5 * (p[i, 0] + p[j, 0]), p[k, 1] - 0.5 * (p[i, 1] + p[j, 1]), \
             p[k, 2] - 0.5 * (p[i, 2] + p[j, 2])
         lever[k] = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
-    order = np.argsort(lever)  # the others, least lever first; the pair's own last (they fit by construction)
-    order = np.concatenate((order[(order != i) & (order != j)], np.array([i, j])))
-    found = np.empty(n, dtype=np.int64)
+    order = np.argsort(lever)
+    return lever, np.concatenate((order[(order != i) & (order != j)], np.array([i, j])))
+
+
+@njit(cache=True)
+def _loose_poses(a, b, Q, M, S, other, p, nu, i, j, origin, cell, nearest, gate_x, gate_n, lean, shift, sx, sn,
+                 out_R, out_t, out_roll, out_cost):
+    """Pose each match (a[c], b[c]) of the contact pair (i, j) and check it loosely: each
+    contact within ``shift`` more, and what the pair's turn may be off by (lean, and the roll
+    the normals leave) times its lever. The poses that pass, the roll each may be off by and
+    their cost are written from the start of the out_ arrays. -> their count"""
+    lever, order = _levers(p, i, j)
+    found = np.empty(p.shape[0], dtype=np.int64)
     R, t = np.empty((3, 3)), np.empty(3)
     Fs, Fc, x, v = np.empty((3, 3)), np.empty((3, 3)), np.empty(3), np.empty(3)
-    H, g, J, T = np.empty((6, 6)), np.empty(6), np.empty(6), np.empty((3, 4))
     count = 0
     for c in range(a.shape[0]):
         w = _pair_pose(Q, M, a[c], b[c], p, nu, i, j, Fs, Fc, R, t)
         roll = min(np.pi, (S[a[c]] + S[b[c]] + 2.0 * gate_n) / max(w, 0.2))
-        if np.isinf(_check(R, t, p, nu, Q, M, S, other, origin, cell, nearest, gate_x + shift, gate_n, lever, lean + roll, sx,
-                           sn, found, x, v, order)):
+        cost = _check(R, t, p, nu, Q, M, S, other, origin, cell, nearest, gate_x + shift, gate_n, lever, lean + roll,
+                      sx, sn, found, x, v, order)
+        if np.isinf(cost):
             continue
+        out_R[count], out_t[count], out_roll[count], out_cost[count] = R, t, roll, cost
+        count += 1
+    return count
+
+
+@njit(cache=True)
+def _refined(R_in, t_in, roll, Q, M, S, other, p, nu, i, j, origin, cell, nearest, gate_x, gate_n, lean, shift, sx, sn,
+             steps, out_R, out_t, out_cost, out_s):
+    """Move each loose pose (R_in, t_in) of the contact pair (i, j) by ``steps`` Gauss–Newton
+    steps, checked again after the first (its turn off by at most lean and min(roll,
+    FIRST_STEP_TURN) times the lever), and check it tightly; the survivors are written from the
+    start of the out_ arrays. -> their count"""
+    n = p.shape[0]
+    lever, order = _levers(p, i, j)
+    zero = np.zeros(n)
+    found = np.empty(n, dtype=np.int64)
+    R, t = np.empty((3, 3)), np.empty(3)
+    x, v = np.empty(3), np.empty(3)
+    H, g, J, T = np.empty((6, 6)), np.empty(6), np.empty(6), np.empty((3, 4))
+    count = 0
+    for c in range(R_in.shape[0]):
+        R[:, :], t[:] = R_in[c], t_in[c]
         moved = True
         for step in range(steps):
             moved = _gn_step(R, t, p, nu, Q, M, S, other, origin, cell, nearest, sx, sn, shift, x, v, H, g, J, T)
             if not moved:
                 break
             if step == 0 and np.isinf(_check(R, t, p, nu, Q, M, S, other, origin, cell, nearest, gate_x + shift,
-                                             gate_n, lever, lean + min(roll, FIRST_STEP_TURN), sx, sn, found, x, v,
-                                             order)):
+                                             gate_n, lever, lean + min(roll[c], FIRST_STEP_TURN), sx, sn, found, x,
+                                             v, order)):
                 moved = False
                 break
         if not moved:
             continue
-        cost = _check(R, t, p, nu, Q, M, S, other, origin, cell, nearest, gate_x, gate_n, zero, 0.0, sx, sn, found, x, v, order)
+        cost = _check(R, t, p, nu, Q, M, S, other, origin, cell, nearest, gate_x, gate_n, zero, 0.0, sx, sn, found, x,
+                      v, order)
         if np.isinf(cost):
             continue
         out_R[count], out_t[count], out_cost[count], out_s[count] = R, t, cost, found
@@ -323,46 +371,89 @@ def _verify_matches(a, b, Q, M, S, other, p, nu, i, j, origin, cell, nearest, ga
     return count
 
 
+def _cell_keys(R, t, diameter):
+    """(K,) int64: each pose's cell of the pose hash (R (K, 3, 3), t (K, 3)): the entries of
+    R's first two columns in steps of CLUSTER_ROT (a turn by θ moves them by up to θ) and the
+    translation in steps of CLUSTER_TRANS_FRAC of the diameter, packed into one number."""
+    if not len(R):
+        return np.zeros(0, dtype=np.int64)
+    cells = np.concatenate([np.floor(R[:, :, :2].reshape(len(R), 6) / CLUSTER_ROT),
+                            np.floor(t / (CLUSTER_TRANS_FRAC * diameter))], axis=1).astype(np.int64)
+    cells -= cells.min(axis=0)
+    span = cells.max(axis=0) + 1
+    if np.prod(span.astype(float)) < 2.0 ** 62:
+        return np.ravel_multi_index(tuple(cells.T), span)
+    return np.unique(cells, axis=0, return_inverse=True)[1].ravel()
+
+
+def _least_per_cell(key, cost):
+    """(L,) int: the index of the least cost in each cell (key (K,)), ordered by cost."""
+    order = np.argsort(cost, kind="stable")
+    _, first = np.unique(key[order], return_index=True)
+    best = order[first]
+    return best[np.argsort(cost[best], kind="stable")]
+
+
 def clustered(candidates, diameter):
-    """One candidate per cell of the pose hash (rotation vector in CLUSTER_ROT cells,
+    """One candidate per cell of the pose hash (rotation in CLUSTER_ROT cells,
     translation in CLUSTER_TRANS_FRAC of the diameter), the least cost of each, ordered by
     cost."""
     if not len(candidates):
         return candidates
-    key = np.concatenate([np.floor(Rotation.from_matrix(candidates.R).as_rotvec() / CLUSTER_ROT),
-                          np.floor(candidates.t / (CLUSTER_TRANS_FRAC * diameter))], axis=1).astype(np.int64)
-    order = np.argsort(candidates.cost, kind="stable")
-    _, first = np.unique(key[order], axis=0, return_index=True)
-    best = order[first]
-    return candidates.take(best[np.argsort(candidates.cost[best], kind="stable")])
+    return candidates.take(_least_per_cell(_cell_keys(candidates.R, candidates.t, diameter), candidates.cost))
+
+
+def posed_pairs(points):
+    """The contact pairs (i, j), i < j, of the points (n, 3), longest first: the candidates of
+    one pair of right contacts hold the truth (every contact is checked), and a longer pair
+    poses them with a longer lever."""
+    pairs = list(combinations(range(len(points)), 2))
+    length = [np.linalg.norm(points[j] - points[i]) for i, j in pairs]
+    return [pairs[k] for k in np.argsort(length, kind="stable")[::-1]]
 
 
 def candidate_poses(oriented, contacts, tolerance, diameter, deadline=None):
     """Every verified, clustered candidate of the contacts (Contacts) on the oriented model
-    (model.oriented.OrientedSamples), the matches checked MATCH_CHUNK at a time until the
-    deadline (a progress.Deadline) passes (then ``deadline.hit``). -> Candidates, ordered by
-    cost"""
+    (model.oriented.OrientedSamples), from the matches of the first contact pair of
+    :func:`posed_pairs` whose matches yield one (a pair whose own contacts are off yields
+    none, and the next is tried). Each match is posed and checked loosely; of the loose poses
+    in one cell of the pose hash only the least-cost one is refined and checked tightly (its
+    neighbours in the cell would walk to the same place). Work goes MATCH_CHUNK at a time until
+    the deadline (a progress.Deadline) passes (then ``deadline.hit``). -> Candidates, ordered
+    by cost"""
     p = np.ascontiguousarray(contacts.points)
     nu = np.ascontiguousarray(contacts.object_normals)
-    n = contacts.n
-    gate_x = oriented.reach + VERIFY_SIGMA * tolerance.position_noise
-    gate_n = VERIFY_SIGMA * tolerance.normal_noise
-    shift = oriented.covering + tolerance.distance
-    out = (np.empty((MATCH_CHUNK, 3, 3)), np.empty((MATCH_CHUNK, 3)), np.empty(MATCH_CHUNK),
-           np.empty((MATCH_CHUNK, n), np.int64))
-    parts = []
-    for i, j in combinations(range(n), 2):
+    model = (oriented.points, oriented.normals, oriented.spreads, oriented.other_side)
+    field = (oriented.origin, oriented.cell, oriented.nearest)
+    found = Candidates(np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros((0, contacts.n), np.int64))
+    for i, j in posed_pairs(p):
         a, b = pair_matches(oriented, p[[i, j]], nu[[i, j]], tolerance)
         lean = float(np.arcsin(min(1.0, (2.0 * oriented.covering + tolerance.distance) / np.linalg.norm(p[j] - p[i]))))
-        for lo in range(0, len(a), MATCH_CHUNK):
-            if deadline is not None and deadline.passed:
-                break
-            k = _verify_matches(a[lo:lo + MATCH_CHUNK], b[lo:lo + MATCH_CHUNK], oriented.points, oriented.normals,
-                                oriented.spreads, oriented.other_side, p, nu, i, j, oriented.origin, oriented.cell,
-                                oriented.nearest, gate_x, gate_n, lean, shift, tolerance.position_noise,
-                                tolerance.normal_noise, REFINE_STEPS, *out)
-            parts.append(Candidates(*(x[:k].copy() for x in out)))
+        gates = (oriented.reach + VERIFY_SIGMA * tolerance.position_noise, VERIFY_SIGMA * tolerance.normal_noise, lean,
+                 oriented.covering + tolerance.distance, tolerance.position_noise, tolerance.normal_noise)
+        R, t, roll, cost = _chunked(_loose_poses, (a, b), (*model, p, nu, i, j, *field, *gates),
+                                    [(3, 3), (3,), (), ()], [np.float64] * 4, deadline)
+        keep = _least_per_cell(_cell_keys(R, t, diameter), cost)
+        found = Candidates(*_chunked(_refined, (R[keep], t[keep], roll[keep]),
+                                     (*model, p, nu, i, j, *field, *gates, REFINE_STEPS),
+                                     [(3, 3), (3,), (), (contacts.n,)], [np.float64] * 3 + [np.int64], deadline))
+        if len(found) or (deadline is not None and deadline.passed):
+            return clustered(found, diameter)
+    return found
+
+
+def _chunked(kernel, rows, args, shapes, dtypes, deadline):
+    """kernel(*(x[lo:lo + MATCH_CHUNK] for x in rows), *args, *out) over the rows MATCH_CHUNK at
+    a time until they are done or the deadline passes, each call writing at most one result
+    per row into out (arrays of MATCH_CHUNK × shapes, dtypes) and returning their count.
+    -> the results, one array per out array"""
+    out = [np.empty((MATCH_CHUNK, *shape), dtype) for shape, dtype in zip(shapes, dtypes)]
+    parts = []
+    for lo in range(0, len(rows[0]), MATCH_CHUNK):
+        if deadline is not None and deadline.passed:
+            break
+        k = kernel(*(x[lo:lo + MATCH_CHUNK] for x in rows), *args, *out)
+        parts.append([x[:k].copy() for x in out])
     if not parts:
-        return Candidates(*(x[:0].copy() for x in out))
-    every = Candidates(*(np.concatenate([getattr(c, f) for c in parts]) for f in ("R", "t", "cost", "samples")))
-    return clustered(every, diameter)
+        return [x[:0].copy() for x in out]
+    return [np.concatenate(col) for col in zip(*parts)]

@@ -14,7 +14,7 @@ from contactpose.contacts import Contacts, Tolerance
 from contactpose.errors import ContactPoseError
 from contactpose.geometry import metrics
 from contactpose.model.object_model import ObjectModel
-from contactpose.search.verify import _pair_pose, candidate_poses
+from contactpose.search.verify import _pair_pose, candidate_poses, posed_pairs
 from contactpose.sim import fingertip, objects
 from contactpose.sim import grasps as simulate
 
@@ -86,7 +86,8 @@ def test_candidates_are_clustered_and_ordered(ycb_banana):
     found = candidate_poses(model.oriented, contacts, tol, model.diameter)
     assert len(found) > 1
     assert np.all(np.diff(found.cost) >= 0)
-    key = np.concatenate([np.floor(Rotation.from_matrix(found.R).as_rotvec() / np.radians(5.0)),
+    # the pose hash: R's first two columns in 5° steps, the translation in steps of 5 % D
+    key = np.concatenate([np.floor(found.R[:, :, :2].reshape(-1, 6) / np.radians(5.0)),
                           np.floor(found.t / (0.05 * model.diameter))], axis=1)
     assert len(np.unique(key, axis=0)) == len(found)
 
@@ -125,3 +126,17 @@ def test_the_time_limit_bounds_the_search(ycb_banana):
     _, contacts = _grasp(ycb_banana, np.random.default_rng(1), 0.02)
     r = localize(ycb_banana, contacts, search="samples", time_limit=1e-9, diagnose=False)
     assert r.status == "time_limit" and len(r.hypotheses) == 0
+
+
+def test_max_outliers_is_refused_by_the_samples_search(ycb_banana):
+    _, contacts = _grasp(ycb_banana, np.random.default_rng(0), 0.0)
+    with pytest.raises(ContactPoseError, match="max_outliers=1 needs search='auto'"):
+        localize(ycb_banana, contacts, search="samples", max_outliers=1)
+
+
+def test_pairs_are_posed_longest_first():
+    points = np.random.default_rng(4).normal(size=(5, 3))
+    pairs = posed_pairs(points)
+    length = [np.linalg.norm(points[j] - points[i]) for i, j in pairs]
+    assert sorted(pairs) == [(i, j) for i in range(5) for j in range(i + 1, 5)]
+    assert np.all(np.diff(length) <= 0)
