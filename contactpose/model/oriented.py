@@ -87,9 +87,9 @@ class OrientedSamples:
 
     @cached_property
     def pairs(self):
-        """PairFeatures of every unordered sample pair, grouped by distance in bins of
-        PAIR_BIN_FRAC of the spacing."""
-        return PairFeatures.of(self.points, self.normals, PAIR_BIN_FRAC * self.spacing)
+        """SamplePairs: the features of every unordered sample pair, grouped by distance in
+        bins of PAIR_BIN_FRAC of the spacing."""
+        return SamplePairs.of(self.points, self.normals, PAIR_BIN_FRAC * self.spacing)
 
     def nearest_samples(self, x):
         """(K,) int: the field's sample for each point x (K, 3), -1 outside the field."""
@@ -102,7 +102,7 @@ class OrientedSamples:
 
 
 @dataclass(frozen=True)
-class PairFeatures:
+class SamplePairs:
     """first, second (P,) int32 sample indices (first < second); distance (P,) float32;
     angle_first, angle_second, angle_normals (P,) float32: ∠(m_a, u), ∠(m_b, u), ∠(m_a, m_b)
     in radians, u from the first to the second. The pairs are grouped by distance in bins of
