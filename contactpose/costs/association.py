@@ -74,25 +74,26 @@ def nearest_fit_facets(model, contacts, pose, tolerance, pose_covariance=None, c
     p, normals = p.reshape(-1, 3), normals.reshape(-1, 3)  # (H·n, 3), pose by pose
     weight = association_weights(p.reshape(H, n, 3), normals.reshape(H, n, 3), tolerance, pose_covariance).reshape(-1)
 
-    def scored(points, outward, candidates, offsets, found=None, found_cost=None, weights=weight):
+    def scored(points, outward, candidates, starts, ends, found=None, found_cost=None, weights=weight):
         if found is None:
             found, found_cost = np.full(len(points), -1), np.full(len(points), np.inf)
-        return _best_fits(points, outward, candidates, offsets, model.triangles, model.planes.normals,
+        return _best_fits(points, outward, candidates, starts, ends, model.triangles, model.planes.normals,
                           model.facet_radii, weights, found, found_cost, edges)
 
     edges = model.crease_edges if creases else np.full((1, 3, 12), np.nan)
 
     if len(valid) <= SCORE_ALL_BELOW:  # a coarse mesh: score every facet
-        best, _ = scored(p, normals, np.tile(valid, H * n), len(valid) * np.arange(H * n + 1))
+        best, _ = scored(p, normals, valid, np.zeros(H * n, np.int64), np.full(H * n, len(valid)))
     else:
         dist, near = tree.query(p, NEAREST_CANDIDATES)
-        best, cost = scored(p, normals, valid[near].ravel(), NEAREST_CANDIDATES * np.arange(len(p) + 1))
+        starts = NEAREST_CANDIDATES * np.arange(len(p))
+        best, cost = scored(p, normals, valid[near].ravel(), starts, starts + NEAREST_CANDIDATES)
         reach = np.sqrt(cost) + radius  # a facet whose centroid lies farther costs more
         short = np.flatnonzero(dist[:, -1] < reach)
         if short.size:
             balls, offsets = _flat(tree.query_ball_point(p[short], reach[short]))
-            best[short] = scored(p[short], normals[short], valid[balls], offsets, best[short], cost[short],
-                                 weight[short])[0]
+            best[short] = scored(p[short], normals[short], valid[balls], offsets[:-1], offsets[1:], best[short],
+                                 cost[short], weight[short])[0]
     return best.reshape(n) if single else best.reshape(H, n)
 
 
@@ -132,11 +133,12 @@ def _flat(lists):
 
 
 @njit(cache=True)
-def _best_fits(p, normals, candidates, offsets, triangles, facet_normals, radii, weight, found, found_cost, edges):
+def _best_fits(p, normals, candidates, starts, ends, triangles, facet_normals, radii, weight, found, found_cost,
+               edges):
     """Each contact's candidate of least fit_cost (the first on a tie), or its ``found`` facet
     of cost ``found_cost`` (m,) when no candidate costs less (-1 and inf: none yet). p, normals
     : (m, 3) object-frame points and outward normals; candidates (Σ,) int, contact i's at
-    offsets[i]:offsets[i + 1] (offsets (m + 1,)); radii : (F,)
+    starts[i]:ends[i] (starts, ends (m,); rows may share them); radii : (F,)
     the facets' radii; weight : (m,) each contact's σ_x²/σ_n² (association_weights); edges :
     ObjectModel.crease_edges, whose edges of a candidate compete with its face
     (costs.smooth.arc_misfits), or one NaN row: none. A candidate whose normal misfit plus (centroid
@@ -147,7 +149,7 @@ def _best_fits(p, normals, candidates, offsets, triangles, facet_normals, radii,
     creases = len(edges) > 1
     for i in range(m):
         least, pick = found_cost[i], found[i]
-        for j in range(offsets[i], offsets[i + 1]):
+        for j in range(starts[i], ends[i]):
             f = candidates[j]
             c = normal_misfit(facet_normals[f], normals[i], weight[i])
             arcs = arc_misfits(normals[i], facet_normals[f], edges[f], weight[i]) if creases else NO_ARCS
