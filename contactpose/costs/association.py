@@ -26,6 +26,7 @@ from numba import njit
 
 from contactpose.costs.frame import object_frame
 from contactpose.costs.smooth import NO_ARCS, arc_misfits
+from contactpose.costs.surface import facet_surface_cost
 from contactpose.geometry.kernels import _d2, _point_triangle_d2, _t, point_triangle_dist2, segment_d2
 from contactpose.geometry.se3 import hat
 
@@ -49,7 +50,7 @@ def fit_cost(point, normal, triangle, facet_normal, weight):
             + normal_misfit(facet_normal, normal, weight))
 
 
-def nearest_fit_facets(model, contacts, pose, tolerance, pose_covariance=None, creases=False):
+def nearest_fit_facets(model, contacts, pose, tolerance, pose_covariance=None, creases=False, surface=False):
     """Each contact's best facet under a pose: least whitened point-to-triangle distance²
     plus normal residual². pose : (4, 4) -> (n,) int, or (H, 4, 4) -> (H, n) int, the poses
     searched together in one pass (valid facets only). pose_covariance : None, or the poses'
@@ -58,6 +59,11 @@ def nearest_fit_facets(model, contacts, pose, tolerance, pose_covariance=None, c
     creases : also score each facet's crease edges (ObjectModel.crease_edges) as the smooth
     contact model reads them, the squared distance to the edge plus the normal's to the
     edge's arc of normals (costs.smooth.arc_misfits), a contact on an edge taking that facet.
+    surface : score each facet by the surface contact model instead, its face, convex edges
+    and vertices with their normal cones (costs.surface.facet_surface_cost): the facet from
+    which the contact lands on the feature of least cost of the whole mesh. A rounded
+    fingertip on a vertex of a rough scan has a normal between its faces'; by their planes
+    alone it takes a facet whose normal matches, millimetres away, and lands near there.
 
     The NEAREST_CANDIDATES facets of nearest centroid are scored first. A facet lies at least
     (its centroid's distance - the largest facet radius) from the contact, so one whose centroid
@@ -77,6 +83,10 @@ def nearest_fit_facets(model, contacts, pose, tolerance, pose_covariance=None, c
     def scored(points, outward, candidates, starts, ends, found=None, found_cost=None, weights=weight):
         if found is None:
             found, found_cost = np.full(len(points), -1), np.full(len(points), np.inf)
+        if surface:
+            return _best_surface_fits(points, outward, candidates, starts, ends, model.triangles,
+                                      model.planes.normals, model.facet_radii, weights, found, found_cost,
+                                      model.topology.arrays)
         return _best_fits(points, outward, candidates, starts, ends, model.triangles, model.planes.normals,
                           model.facet_radii, weights, found, found_cost, edges)
 
@@ -166,6 +176,34 @@ def _best_fits(p, normals, candidates, starts, ends, triangles, facet_normals, r
             for k in range(3):
                 if arcs[k] < least:
                     c = min(c, arcs[k] + segment_d2(p[i], triangles[f, k], triangles[f, (k + 1) % 3]))
+            if c < least:
+                least, pick = c, f
+        best[i], cost[i] = pick, least
+    return best, cost
+
+
+@njit(cache=True)
+def _best_surface_fits(p, normals, candidates, starts, ends, triangles, facet_normals, radii, weight, found,
+                       found_cost, topology):
+    """As :func:`_best_fits`, each candidate scored by costs.surface.facet_surface_cost (its
+    face, convex edges and vertices); a candidate whose (centroid distance - radius)² already
+    reaches the least cost so far is not scored. topology : model.surface.SurfaceTopology.arrays."""
+    fv, vpos, edge_nbr, edge_convex, vf_ptr, vf, cone_ptr, cone_rays = topology
+    m = p.shape[0]
+    best, cost = np.empty(m, np.int64), np.empty(m)
+    for i in range(m):
+        least, pick = found_cost[i], found[i]
+        x, n = _t(p[i]), _t(normals[i])
+        for j in range(starts[i], ends[i]):
+            f = candidates[j]
+            gap = 0.0
+            for a in range(3):
+                gap += (p[i, a] - (triangles[f, 0, a] + triangles[f, 1, a] + triangles[f, 2, a]) / 3.0) ** 2
+            gap = max(np.sqrt(gap) - radii[f], 0.0)
+            if gap * gap >= least:
+                continue
+            c = facet_surface_cost(x, n, f, fv, vpos, edge_nbr, edge_convex, cone_ptr, cone_rays, vf_ptr, vf,
+                                   triangles, facet_normals, weight[i])
             if c < least:
                 least, pick = c, f
         best[i], cost[i] = pick, least

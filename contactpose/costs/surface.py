@@ -6,9 +6,11 @@ A contact (p, ν) in the object frame (ν the outward surface normal it measures
 * a face interior: the face normal;
 * a convex edge: the great-circle arc between its two faces' normals (a rounded fingertip
   rolling over the edge);
-* a convex vertex (every edge at it convex): the spherical polygon of its faces' normals,
-  the directions of the convex cone they span;
-* a concave edge or vertex: only its faces' normals, which the faces already give.
+* a vertex: the directions ν with ν · (u − v) <= 0 for every neighbour u (no edge at it
+  rises above the fingertip's tangent plane; model.surface.normal_cone_rays). At a convex
+  vertex, the convex cone its faces' normals span; at one with concave edges, a smaller
+  cone; at a saddle, none;
+* a concave edge: only its faces' normals, which the faces already give.
 
 The whitened cost of a contact on a feature is c = d(p, feature)²/σ_x² + |ν − ν*|²/σ_n², where
 ν* is the direction of the cone nearest to ν (|ν − ν*| = 2 sin(θ/2) for the angle θ to the
@@ -51,8 +53,8 @@ from contactpose.geometry.se3 import hat, hat3, retract
 MAX_WALK = 16
 #: Feature kinds reported by :func:`land`.
 FACE, EDGE, VERTEX = 0, 1, 2
-#: A vertex with more faces than this gets only the arcs of its edges, not the inside of its
-#: cone (the inside test visits every triple of faces).
+#: A vertex with more cone rays than this gets only the arcs between them, not the inside of
+#: its cone (the inside test visits every triple of rays).
 MAX_CONE_FACES = 24
 
 
@@ -90,17 +92,16 @@ def land(topology, triangles, normals, valid, points, nu, start, sigma_position,
     out = Landing(np.full(k, np.nan), np.asarray(start, dtype=np.int64).copy(), np.zeros(k, dtype=np.int64),
                   np.full((k, 3), np.nan), np.full((k, 3), np.nan), np.zeros(k, dtype=np.int64),
                   np.zeros((k, 3)), np.zeros(k, dtype=np.int64), np.zeros((k, 2, 3)))
-    t = topology
-    _land(t.fv, t.points, t.edge_nbr, t.edge_convex, t.vf_ptr, t.vf, t.vertex_convex,
-          np.ascontiguousarray(triangles, dtype=np.float64), np.ascontiguousarray(normals, dtype=np.float64),
-          np.asarray(valid, dtype=np.bool_), np.ascontiguousarray(points, dtype=np.float64),
-          np.ascontiguousarray(nu, dtype=np.float64), 1.0 / sigma_position**2, 1.0 / sigma_normal**2,
+    _land(*topology.arrays, np.ascontiguousarray(triangles, dtype=np.float64),
+          np.ascontiguousarray(normals, dtype=np.float64), np.asarray(valid, dtype=np.bool_),
+          np.ascontiguousarray(points, dtype=np.float64), np.ascontiguousarray(nu, dtype=np.float64),
+          1.0 / sigma_position**2, 1.0 / sigma_normal**2,
           out.cost, out.facet, out.kind, out.q, out.cone, out.pcode, out.pdir, out.ncode, out.arc)
     return out
 
 
 @numba.njit(cache=True)
-def _land(fv, vpos, edge_nbr, edge_convex, vf_ptr, vf, vertex_convex, tri, normals, valid, points, nu, wx, wn,
+def _land(fv, vpos, edge_nbr, edge_convex, vf_ptr, vf, cone_ptr, cone_rays, tri, normals, valid, points, nu, wx, wn,
           cost, facet, kind, q, cone, pcode, pdir, ncode, arc):
     for i in range(len(facet)):
         if facet[i] < 0:
@@ -108,8 +109,8 @@ def _land(fv, vpos, edge_nbr, edge_convex, vf_ptr, vf, vertex_convex, tri, norma
         p, n = _t(points[i]), _t(nu[i])
         cur = facet[i]
         for _ in range(MAX_WALK):
-            best = _best_near(cur, p, n, fv, vpos, edge_nbr, edge_convex, vf_ptr, vf, vertex_convex, tri, normals,
-                              valid, wx, wn)
+            best = _best_near(cur, p, n, fv, vpos, edge_nbr, edge_convex, vf_ptr, vf, cone_ptr, cone_rays, tri,
+                              normals, valid, wx, wn)
             if best[1] == cur:
                 break
             cur = best[1]
@@ -120,7 +121,8 @@ def _land(fv, vpos, edge_nbr, edge_convex, vf_ptr, vf, vertex_convex, tri, norma
 
 
 @numba.njit(cache=True)
-def _best_near(cur, p, n, fv, vpos, edge_nbr, edge_convex, vf_ptr, vf, vertex_convex, tri, normals, valid, wx, wn):
+def _best_near(cur, p, n, fv, vpos, edge_nbr, edge_convex, vf_ptr, vf, cone_ptr, cone_rays, tri, normals, valid, wx,
+               wn):
     """Least-cost feature among the faces, edges and vertices of the facets sharing a vertex
     with ``cur``. -> (cost, facet, kind, closest point, ν*, pcode, pdir, ncode, arc ends)"""
     zero = (0.0, 0.0, 0.0)
@@ -152,15 +154,42 @@ def _best_near(cur, p, n, fv, vpos, edge_nbr, edge_convex, vf_ptr, vf, vertex_co
                                 1 if inner else 0, ng, nh)
             for j in range(3):
                 w = fv[g, j]
-                if not vertex_convex[w]:
+                if cone_ptr[w + 1] == cone_ptr[w]:
                     continue
                 x = _t(vpos[w])
                 d2 = wx * _d2(p, x)
                 if d2 < best[0]:
-                    s, near, ncode, ea, eb = _cone_nearest(n, vf[vf_ptr[w]:vf_ptr[w + 1]], normals)
+                    s, near, ncode, ea, eb = _cone_nearest(n, cone_rays[cone_ptr[w]:cone_ptr[w + 1]],
+                                                           vf[vf_ptr[w]:vf_ptr[w + 1]], normals)
                     total = d2 + wn * _d2(n, s)
                     if total < best[0]:
                         best = (total, near, VERTEX, x, s, 0, zero, ncode, ea, eb)
+    return best
+
+
+@numba.njit(cache=True)
+def facet_surface_cost(p, n, f, fv, vpos, edge_nbr, edge_convex, cone_ptr, cone_rays, vf_ptr, vf, tri, normals, w):
+    """The least cost, in length² (d² + w |ν − ν*|², w = σ_x²/σ_n²), of a contact (p, ν
+    outward, 3-tuples) on facet f's own features: its face, its convex edges and its vertices
+    with a normal cone. The surface model's cost of one facet, as :func:`_best_near` weighs the
+    features around it (times σ_x²)."""
+    x, _, _ = _triangle_feature(p, _t(tri[f, 0]), _t(tri[f, 1]), _t(tri[f, 2]))
+    best = _d2(p, x) + w * _d2(n, _t(normals[f]))
+    for j in range(3):
+        h = edge_nbr[f, j]
+        if h >= 0 and edge_convex[f, j]:
+            a, b = _t(vpos[fv[f, j]]), _t(vpos[fv[f, (j + 1) % 3]])
+            d2 = _d2(p, _closest_on_segment(p, a, b))
+            if d2 < best:
+                s, _ = _arc_nearest(n, _t(normals[f]), _t(normals[h]))
+                best = min(best, d2 + w * _d2(n, s))
+        u = fv[f, j]
+        if cone_ptr[u + 1] > cone_ptr[u]:
+            d2 = _d2(p, _t(vpos[u]))
+            if d2 < best:
+                s, _, _, _, _ = _cone_nearest(n, cone_rays[cone_ptr[u]:cone_ptr[u + 1]], vf[vf_ptr[u]:vf_ptr[u + 1]],
+                                              normals)
+                best = min(best, d2 + w * _d2(n, s))
     return best
 
 
@@ -193,21 +222,21 @@ def _arc_nearest(n, a, b):
 
 
 @numba.njit(cache=True)
-def _cone_nearest(n, faces, normals):
-    """Direction of the convex cone spanned by the faces' normals nearest to n, the face
-    whose normal is nearest to it, and how it moves with n (ncode of :class:`Landing`, the
-    arc's ends). Inside the cone when some three of the normals span n with non-negative
-    weights; else on the arc between some two of them, or at one."""
-    k = len(faces)
+def _cone_nearest(n, rays, faces, normals):
+    """Direction of the convex cone spanned by ``rays`` (k, 3) nearest to n, the face (of
+    ``faces``, indices into ``normals``) whose normal is nearest to it, and how it moves with n
+    (ncode of :class:`Landing`, the arc's ends). Inside the cone when some three of the rays
+    span n with non-negative weights; else on the arc between some two of them, or at one."""
+    k = len(rays)
     zero = (0.0, 0.0, 0.0)
     if k <= MAX_CONE_FACES:
         for a in range(k):
-            na = _t(normals[faces[a]])
+            na = _t(rays[a])
             for b in range(a + 1, k):
-                nb = _t(normals[faces[b]])
+                nb = _t(rays[b])
                 ab = _cross(na, nb)
                 for c in range(b + 1, k):
-                    nc = _t(normals[faces[c]])
+                    nc = _t(rays[c])
                     det = _dot(ab, nc)
                     if abs(det) < 1e-12:
                         continue
@@ -216,11 +245,11 @@ def _cone_nearest(n, faces, normals):
                     lc = _dot(ab, n) / det
                     if la >= 0.0 and lb >= 0.0 and lc >= 0.0:
                         return n, _nearest_face(n, faces, normals), 2, zero, zero
-    best, bd, code, ea, eb = _t(normals[faces[0]]), np.inf, 0, zero, zero
+    best, bd, code, ea, eb = _t(rays[0]), np.inf, 0, zero, zero
     for a in range(k):
-        na = _t(normals[faces[a]])
+        na = _t(rays[a])
         for b in range(a + 1, k):
-            nb = _t(normals[faces[b]])
+            nb = _t(rays[b])
             s, inner = _arc_nearest(n, na, nb)
             d = _d2(n, s)
             if d < bd:
@@ -355,10 +384,8 @@ def surface_rows(R, t, points, finger_normals, facets, topology, tri, normals, v
     perturbation ξ = (ω, v) at ξ = 0, compiled: :class:`SurfaceResiduals` without its Python
     side. Each assigned contact (facets (n,) int, -1: left out) lands walking from its facet,
     which ``facets`` then holds; rows (p − q)/σ_x of the used contacts first, then (ν − ν*)/σ_n,
-    written to e (6 n',) and J (6 n', 6). topology : the arrays of model.surface.SurfaceTopology
-    (fv, points, edge_nbr, edge_convex, vf_ptr, vf, vertex_convex). -> χ²_S (the sum of the
-    landing costs)"""
-    fv, vpos, edge_nbr, edge_convex, vf_ptr, vf, vertex_convex = topology
+    written to e (6 n',) and J (6 n', 6). topology : model.surface.SurfaceTopology.arrays.
+    -> χ²_S (the sum of the landing costs)"""
     n = len(facets)
     p, nu = np.empty((n, 3)), np.empty((n, 3))
     for i in range(n):
@@ -366,7 +393,8 @@ def surface_rows(R, t, points, finger_normals, facets, topology, tri, normals, v
         nu[i] = np.array(object_normal(R, finger_normals[i]))
     cost, kind, q, cone = np.zeros(n), np.zeros(n, np.int64), np.zeros((n, 3)), np.zeros((n, 3))
     pcode, pdir, ncode, arc = np.zeros(n, np.int64), np.zeros((n, 3)), np.zeros(n, np.int64), np.zeros((n, 2, 3))
-    _land(fv, vpos, edge_nbr, edge_convex, vf_ptr, vf, vertex_convex, tri, normals, valid, p, nu,
+    _land(topology[0], topology[1], topology[2], topology[3], topology[4], topology[5], topology[6], topology[7],
+          tri, normals, valid, p, nu,
           1.0 / sigma_position**2, 1.0 / sigma_normal**2, cost, facets, kind, q, cone, pcode, pdir, ncode, arc)
     used = 0
     for i in range(n):

@@ -73,9 +73,7 @@ def surface_fit(model, contacts, R, t, facets, tolerance):
 def _stage(model, contacts, R, t, start, tolerance, widen):
     """One least-squares stage of the surface fit with σ_x times ``widen``: compiled
     Levenberg–Marquardt (:func:`_lm`) on χ²_S's rows (costs.surface.surface_rows). -> (R, t)"""
-    topology = model.topology
-    arrays = (topology.fv, topology.points, topology.edge_nbr, topology.edge_convex, topology.vf_ptr, topology.vf,
-              topology.vertex_convex)
+    arrays = model.topology.arrays
     return _lm(np.ascontiguousarray(R, dtype=np.float64), np.ascontiguousarray(t, dtype=np.float64),
                np.ascontiguousarray(contacts.points), np.ascontiguousarray(contacts.finger_normals),
                np.asarray(start, dtype=np.int64).copy(), arrays, np.ascontiguousarray(model.triangles),
@@ -161,12 +159,23 @@ def surface_poses(model, contacts, arrays, tolerance, k=SURFACE_REFINE):
     normals of the features they land on leave free (closed_form.free_directions). -> (rows (K,) int, PoseFit of the surface poses,
     facets (K, n) int, (cone directions ν* (K, n, 3), distances |p − q| (K, n))), K >= 0"""
     rows = np.flatnonzero(~arrays.fit.underdetermined)[:k]
+    starts = _surface_starts(model, contacts, arrays.fit.take(rows).poses(), arrays.facets[rows], tolerance)
     fits = []
-    for r in rows:
+    for r, start in zip(rows, starts):
         R, t, f = arrays.fit.R[r], arrays.fit.t[r], arrays.facets[r]
         if needs_surface(model, contacts, R, t, f, tolerance):
-            fits.append((r, surface_fit(model, contacts, R, t, f, tolerance)))
+            fits.append((r, surface_fit(model, contacts, R, t, start, tolerance)))
     return _lowered(arrays, fits, tolerance)
+
+
+def _surface_starts(model, contacts, poses, facets, tolerance):
+    """The facets the surface fits walk from at poses (H, 4, 4): each assigned contact's facet
+    of least surface cost over the whole mesh (costs.association.nearest_fit_facets with
+    ``surface``), from which it lands on its least-cost feature; the hypothesis's own facet
+    may lie behind a ridge of that cost. facets (H, n): −1, an unassigned finger, stays out."""
+    if not len(poses):
+        return facets
+    return np.where(facets >= 0, nearest_fit_facets(model, contacts, poses, tolerance, surface=True), -1)
 
 
 def multistart_poses(model, contacts, arrays, tolerance, k=MULTISTART_ROWS):
@@ -195,12 +204,12 @@ def multistart_starts(R, t, diameter):
 
 def multistart_fit(model, contacts, R, t, facets, tolerance):
     """The :func:`surface_fit` of least χ²_S among those from (R, t) walking from ``facets``
-    and from each of :func:`multistart_starts`, each contact walking from its best-fitting
-    facet there (costs.association.nearest_fit_facets; an unassigned finger, facet −1, stays
-    out). Returns as :func:`surface_fit` does."""
+    and from each of :func:`multistart_starts`, each contact walking from its facet of least
+    surface cost there (:func:`_surface_starts`; an unassigned finger, facet −1, stays out).
+    Returns as :func:`surface_fit` does."""
     best = surface_fit(model, contacts, R, t, facets, tolerance)
     starts = multistart_starts(R, t, model.diameter)
-    nearest = np.where(np.asarray(facets) >= 0, nearest_fit_facets(model, contacts, starts, tolerance), -1)
+    nearest = _surface_starts(model, contacts, starts, np.broadcast_to(facets, (len(starts), len(facets))), tolerance)
     for pose, start in zip(starts, nearest):
         got = surface_fit(model, contacts, pose[:3, :3], pose[:3, 3], start, tolerance)
         if got[5] < best[5]:

@@ -1,6 +1,7 @@
 """The surface contact model against independent references: dense sampling of arcs, the
-projection on a convex cone by non-negative least squares, brute force over every feature
-of a mesh, and the fingertip simulator's own contacts."""
+projection on a convex cone by non-negative least squares, a vertex's normal cone by the
+Moreau decomposition against its edges' cone, brute force over every feature of a mesh, and
+the fingertip simulator's own contacts."""
 
 import numpy as np
 import pytest
@@ -11,6 +12,7 @@ from scipy.spatial.transform import Rotation
 from contactpose import Contacts, ObjectModel
 from contactpose.contacts import Tolerance
 from contactpose.costs import surface
+from contactpose.costs.association import nearest_fit_facets
 from contactpose.costs.surface import SurfaceResiduals, landing
 from contactpose.geometry.se3 import retract
 from contactpose.model.object_model import merged_mesh
@@ -58,7 +60,7 @@ def test_cone_nearest_matches_nonnegative_least_squares():
         gens = _unit(axis + rng.uniform(0.05, 0.6) * rng.normal(size=(k, 3)))
         n = _unit(axis + rng.normal(scale=0.5, size=3))
         faces = np.arange(k)
-        s, near, _, _, _ = surface._cone_nearest(tuple(n), faces, gens)
+        s, near, _, _, _ = surface._cone_nearest(tuple(n), gens, faces, gens)
         ref = _cone_reference(n, gens)
         assert np.linalg.norm(n - np.array(s)) == pytest.approx(np.linalg.norm(n - ref), abs=1e-9), trial
         assert near == np.argmax(gens @ np.array(s))
@@ -66,13 +68,25 @@ def test_cone_nearest_matches_nonnegative_least_squares():
 
 def _features(mesh, valid):
     """Every feature of a vertex-merged mesh: faces, convex edges (with their two faces),
-    convex vertices (with their faces), as the contact model defines them."""
+    vertices (with the unit directions of their edges), as the contact model defines them."""
     adjacency, edges = mesh.face_adjacency, mesh.face_adjacency_edges
     convex = mesh.face_adjacency_convex
-    concave_vertices = set(edges[~convex].ravel())
-    vertex_faces = [np.flatnonzero((mesh.faces == v).any(axis=1) & valid) for v in range(len(mesh.vertices))]
-    vertices = [(v, f) for v, f in enumerate(vertex_faces) if v not in concave_vertices and len(f)]
+    vertices = []
+    for v in range(len(mesh.vertices)):
+        faces = np.flatnonzero((mesh.faces == v).any(axis=1) & valid)
+        if len(faces):
+            others = np.setdiff1d(mesh.faces[faces].ravel(), [v])
+            vertices.append((v, _unit(mesh.vertices[others] - mesh.vertices[v])))
     return np.flatnonzero(valid), [(e, pair) for e, pair, c in zip(edges, adjacency, convex) if c], vertices
+
+
+def _polar_reference(n, edges):
+    """Nearest direction to n of a vertex's normal cone {ν : ν · e <= 0 for its edges e}, by
+    the Moreau decomposition n = P_K(n) + P_K°(n), K the cone of the edges (nnls), K° the
+    normal cone; None where P_K°(n) = 0 (n at least 90° from the whole cone, or no cone)."""
+    weights, _ = nnls(edges.T, n)
+    y = n - edges.T @ weights
+    return None if np.linalg.norm(y) < 1e-9 else y / np.linalg.norm(y)
 
 
 def _brute_cost(mesh, valid, p, n, sx, sn):
@@ -89,10 +103,90 @@ def _brute_cost(mesh, valid, p, n, sx, sn):
         x = a + s * (b - a)
         cone = _cone_reference(n, normals[[f, g]])
         best = min(best, np.sum((x - p) ** 2) / sx**2 + np.sum((cone - n) ** 2) / sn**2)
-    for v, fs in vertices:
-        cone = _cone_reference(n, normals[fs])
-        best = min(best, np.sum((mesh.vertices[v] - p) ** 2) / sx**2 + np.sum((cone - n) ** 2) / sn**2)
+    for v, directions in vertices:
+        cone = _polar_reference(n, directions)
+        if cone is not None:
+            best = min(best, np.sum((mesh.vertices[v] - p) ** 2) / sx**2 + np.sum((cone - n) ** 2) / sn**2)
     return best
+
+
+def _bumpy(seed=0, subdivisions=2, bump=0.06):
+    """An icosphere with random radial bumps: a closed mesh with many non-convex vertices."""
+    sphere = trimesh.creation.icosphere(subdivisions=subdivisions)
+    radius = 1.0 + bump * np.random.default_rng(seed).uniform(-1, 1, len(sphere.vertices))
+    return trimesh.Trimesh(sphere.vertices * radius[:, None], sphere.faces, process=False)
+
+
+def test_vertex_cones_are_the_polar_cones_of_their_edges():
+    """Each vertex's cone rays span exactly {ν : ν · e <= 0 for its edges e}: random
+    directions are in the span of its rays (nnls residual 0) iff they hold every edge
+    constraint, at convex and non-convex vertices alike; a saddle has no rays."""
+    model = ObjectModel.from_mesh(_bumpy())
+    mesh = merged_mesh(model.vertices, model.faces)
+    top = model.topology
+    _, _, vertices = _features(mesh, model.planes.valid)
+    rng = np.random.default_rng(3)
+    concave = mesh.face_adjacency_edges[~mesh.face_adjacency_convex].ravel()
+    kinds = set()
+    for v, directions in vertices:
+        rays = top.cone_rays[top.cone_ptr[v]:top.cone_ptr[v + 1]]
+        kinds.add((v in concave, len(rays) > 0))
+        outward = _unit(mesh.vertex_normals[v])
+        probes = _unit(np.concatenate([outward + rng.normal(scale=0.4, size=(60, 3)), rays + 1e-3 * rng.normal(size=rays.shape)]))
+        for nu in probes:
+            inside = np.all(directions @ nu <= 1e-9)
+            spanned = len(rays) > 0 and nnls(rays.T, nu)[1] < 1e-9
+            assert inside == spanned or abs(np.max(directions @ nu)) < 1e-7, (v, nu)
+    assert {(False, True), (True, True), (True, False)} <= kinds, kinds  # convex, concave-edged, saddle
+
+
+@pytest.mark.parametrize("name", ["bumpy", "rock"])
+def test_surface_association_lands_on_the_least_cost_feature_of_the_whole_mesh(name):
+    """nearest_fit_facets(surface=True) under a pose: the contact, landing from the facet it
+    returns, costs what the brute force over every feature of the mesh finds (dense arcs,
+    nnls cones), for fingertip contacts with noise at a perturbed pose. On the rough bumpy
+    sphere the facet of least plane cost (surface=False) lands elsewhere for some contacts."""
+    model = ObjectModel.from_mesh(_bumpy(seed=2, subdivisions=3, bump=0.1) if name == "bumpy" else objects.load(name))
+    mesh = merged_mesh(model.vertices, model.faces)
+    rng = np.random.default_rng(6)
+    D = model.diameter
+    tol = Tolerance.from_noise(0.008 * D, 1.0)  # facets a few σ_x wide, their normals far apart: rough
+    got = fingertip.approach(np.asarray(mesh.vertices), np.asarray(mesh.faces), rng, 80, 0.1 * D)
+    hit = got.hit
+    p = got.points[hit] + rng.normal(scale=tol.position_noise, size=(hit.sum(), 3))
+    n = _unit(got.normals[hit] + rng.normal(scale=tol.normal_noise, size=(hit.sum(), 3)))
+    pose = np.eye(4)
+    pose[:3, :3] = Rotation.from_rotvec([0.01, -0.02, 0.015]).as_matrix()
+    pose[:3, 3] = 0.005 * D
+    contacts = Contacts(p @ pose[:3, :3].T + pose[:3, 3], finger_normals=-(n @ pose[:3, :3].T))
+    facets = nearest_fit_facets(model, contacts, pose, tol, surface=True)
+    landed = landing(model, contacts, pose[:3, :3], pose[:3, 3], facets, tol)
+    q, nu = (contacts.points - pose[:3, 3]) @ pose[:3, :3], -(contacts.finger_normals @ pose[:3, :3])
+    for i in range(len(p)):
+        assert landed.cost[i] == pytest.approx(_brute_cost(mesh, model.planes.valid, q[i], nu[i], tol.position_noise,
+                                                           tol.normal_noise), rel=1e-6, abs=1e-9), i
+    by_planes = landing(model, contacts, pose[:3, :3], pose[:3, 3], nearest_fit_facets(model, contacts, pose, tol), tol)
+    assert np.all(by_planes.cost >= landed.cost - 1e-9)
+    if name == "bumpy":
+        assert np.any(by_planes.cost > landed.cost + 1.0)
+
+
+def test_fingertip_contacts_at_non_convex_vertices_cost_nothing():
+    """A ball touching a vertex that has concave edges has its normal in the vertex's
+    (smaller) cone: the simulator's noise-free contacts on the bumpy sphere cost 0."""
+    model = ObjectModel.from_mesh(_bumpy(seed=1))
+    mesh = merged_mesh(model.vertices, model.faces)
+    concave = set(mesh.face_adjacency_edges[~mesh.face_adjacency_convex].ravel().tolist())
+    rng = np.random.default_rng(5)
+    got = fingertip.approach(np.asarray(mesh.vertices), np.asarray(mesh.faces), rng, 300, 1.0)
+    hit = got.hit
+    tol = Tolerance.from_noise(0.002 * model.diameter, 1.0)
+    landed = surface.land(model.topology, model.triangles, model.planes.normals, model.planes.valid,
+                          got.points[hit], got.normals[hit], got.facets[hit], tol.position_noise, tol.normal_noise)
+    at = np.argmin(np.linalg.norm(got.points[hit][:, None] - mesh.vertices[None], axis=2), axis=1)
+    on_concave_vertex = (got.features[hit] == "vertex") & np.isin(at, list(concave))
+    assert on_concave_vertex.sum() >= 10
+    assert np.all(landed.cost < 1e-12)
 
 
 @pytest.mark.parametrize("name", ["box", "rock"])
@@ -243,7 +337,7 @@ def test_compiled_surface_rows_equal_the_residuals_and_jacobian_at_the_pose(name
     rng = np.random.default_rng(9)
     tol = Tolerance.from_noise(0.002 * model.diameter, 2.0)
     topo = model.topology
-    arrays = (topo.fv, topo.points, topo.edge_nbr, topo.edge_convex, topo.vf_ptr, topo.vf, topo.vertex_convex)
+    arrays = topo.arrays
     kinds = set()
     for _ in range(12):
         pose, noisy, got = _noisy_edge_grasp(model, rng, tol)
