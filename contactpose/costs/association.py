@@ -86,7 +86,7 @@ def nearest_fit_facets(model, contacts, pose, tolerance, pose_covariance=None, c
         if surface:
             return _best_surface_fits(points, outward, candidates, starts, ends, model.triangles,
                                       model.planes.normals, model.facet_radii, weights, found, found_cost,
-                                      model.topology.arrays)
+                                      model.topology.arrays, model.topology.spread)
         return _best_fits(points, outward, candidates, starts, ends, model.triangles, model.planes.normals,
                           model.facet_radii, weights, found, found_cost, edges)
 
@@ -184,15 +184,22 @@ def _best_fits(p, normals, candidates, starts, ends, triangles, facet_normals, r
 
 @njit(cache=True)
 def _best_surface_fits(p, normals, candidates, starts, ends, triangles, facet_normals, radii, weight, found,
-                       found_cost, topology):
+                       found_cost, topology, spread):
     """As :func:`_best_fits`, each candidate scored by costs.surface.facet_surface_cost (its
-    face, convex edges and vertices); a candidate whose (centroid distance - radius)² already
-    reaches the least cost so far is not scored. topology : model.surface.SurfaceTopology.arrays."""
+    face, convex edges and vertices). A candidate is not scored when a lower bound already
+    reaches the least cost so far: (centroid distance - radius)² plus the normal misfit at
+    the angle by which the contact's normal lies beyond the facet's spread (the widest its
+    features admit). topology : model.surface.SurfaceTopology.arrays; spread : its spread (m,)."""
     fv, vpos, edge_nbr, edge_convex, vf_ptr, vf, cone_ptr, cone_rays = topology
     m = p.shape[0]
     best, cost = np.empty(m, np.int64), np.empty(m)
     for i in range(m):
         least, pick = found_cost[i], found[i]
+        for j in range(starts[i], ends[i]):  # the faces first: a cheap upper bound to prune by
+            f = candidates[j]
+            c = fit_cost(p[i], normals[i], triangles[f], facet_normals[f], weight[i])
+            if c < least:
+                least, pick = c, f
         x, n = _t(p[i]), _t(normals[i])
         for j in range(starts[i], ends[i]):
             f = candidates[j]
@@ -201,6 +208,11 @@ def _best_surface_fits(p, normals, candidates, starts, ends, triangles, facet_no
                 gap += (p[i, a] - (triangles[f, 0, a] + triangles[f, 1, a] + triangles[f, 2, a]) / 3.0) ** 2
             gap = max(np.sqrt(gap) - radii[f], 0.0)
             if gap * gap >= least:
+                continue
+            cos = normals[i, 0] * facet_normals[f, 0] + normals[i, 1] * facet_normals[f, 1] \
+                + normals[i, 2] * facet_normals[f, 2]
+            beyond = max(np.arccos(max(-1.0, min(1.0, cos))) - spread[f], 0.0)
+            if gap * gap + weight[i] * (2.0 - 2.0 * np.cos(beyond)) >= least:
                 continue
             c = facet_surface_cost(x, n, f, fv, vpos, edge_nbr, edge_convex, cone_ptr, cone_rays, vf_ptr, vf,
                                    triangles, facet_normals, weight[i])

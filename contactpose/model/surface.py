@@ -22,7 +22,9 @@ class SurfaceTopology:
     edge_nbr : (m, 3) the facet across edge j = (fv[:, j], fv[:, j+1]) (-1: none);
     edge_convex : (m, 3) bool; vf_ptr (V + 1,), vf : CSR valid facets at each vertex;
     cone_ptr (V + 1,), cone_rays (K, 3) : CSR unit rays spanning each vertex's normal cone
-    (:func:`normal_cone_rays`; none where a ball cannot touch the vertex alone).
+    (:func:`normal_cone_rays`; none where a ball cannot touch the vertex alone); spread (m,) :
+    the largest angle (radians) from each facet's normal to a normal its own features admit
+    (:func:`facet_spread`).
     """
 
     fv: np.ndarray
@@ -33,6 +35,7 @@ class SurfaceTopology:
     vf: np.ndarray
     cone_ptr: np.ndarray
     cone_rays: np.ndarray
+    spread: np.ndarray
 
     @classmethod
     def of(cls, merged, valid):
@@ -59,8 +62,10 @@ class SurfaceTopology:
         np.cumsum(np.bincount(corner_v, minlength=nv), out=vf_ptr[1:])
         points = np.asarray(merged.vertices, dtype=np.float64)
         vf = np.repeat(faces, 3)[order]
-        cone_ptr, cone_rays = normal_cone_rays(points, fv[faces], vf_ptr, vf, np.asarray(merged.face_normals))
-        return cls(fv, points, edge_nbr, edge_convex, vf_ptr, vf, cone_ptr, cone_rays)
+        normals = np.asarray(merged.face_normals, dtype=np.float64)
+        cone_ptr, cone_rays = normal_cone_rays(points, fv[faces], vf_ptr, vf, normals)
+        spread = facet_spread(fv, edge_nbr, edge_convex, cone_ptr, cone_rays, normals, valid)
+        return cls(fv, points, edge_nbr, edge_convex, vf_ptr, vf, cone_ptr, cone_rays, spread)
 
     @property
     def arrays(self):
@@ -93,6 +98,29 @@ def normal_cone_rays(points, faces, vf_ptr, vf, face_normals):
     cone_ptr = np.zeros(nv + 1, dtype=np.int64)
     np.cumsum(counts, out=cone_ptr[1:])
     return cone_ptr, rays[:cone_ptr[-1]]
+
+
+@numba.njit(cache=True)
+def facet_spread(fv, edge_nbr, edge_convex, cone_ptr, cone_rays, normals, valid):
+    """The largest angle (radians) from each valid facet's normal to a normal one of its own
+    features admits: its convex edges' arcs reach the neighbour's normal, its vertices' cones
+    their rays (cones are convex, so their rays bound them). A contact whose normal is θ from
+    the facet's is at least θ − spread from every feature of it (a lower bound that lets the
+    surface association skip the facet). -> (m,), 0 for an invalid facet"""
+    out = np.zeros(len(fv))
+    for f in range(len(fv)):
+        if not valid[f]:
+            continue
+        widest = 1.0
+        for j in range(3):
+            h = edge_nbr[f, j]
+            if h >= 0 and edge_convex[f, j]:
+                widest = min(widest, normals[f] @ normals[h])
+            u = fv[f, j]
+            for r in range(cone_ptr[u], cone_ptr[u + 1]):
+                widest = min(widest, normals[f] @ cone_rays[r])
+        out[f] = np.arccos(max(-1.0, min(1.0, widest)))
+    return out
 
 
 @numba.njit(cache=True)
