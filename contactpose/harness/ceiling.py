@@ -112,9 +112,10 @@ def placement_fits(model, contacts, true_pose, *, group=None, checks=CHECKS, **o
 
 
 def _true_chi2(model, contacts, true_pose, tolerance, group):
-    """χ²_S of the surface fit from the true pose, each contact walking from its nearest
-    facet, or, when that fit leaves the true placement, χ²_S at the true pose. -> (χ², drifted)"""
-    start = nearest_fit_facets(model, contacts, true_pose, tolerance)
+    """χ²_S of the surface fit from the true pose, each contact walking from its facet of
+    least surface cost, or, when that fit leaves the true placement, χ²_S at the true pose.
+    -> (χ², drifted)"""
+    start = nearest_fit_facets(model, contacts, true_pose, tolerance, surface=True)
     R, t = true_pose[:3, :3], true_pose[:3, 3]
     fitted = surface_fit(model, contacts, R, t, start, tolerance)
     pose = np.eye(4)

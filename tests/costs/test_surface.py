@@ -18,6 +18,7 @@ from contactpose.geometry.se3 import retract
 from contactpose.model.object_model import merged_mesh
 from contactpose.scoring.rank import hypothesis_arrays
 from contactpose.sim import fingertip, objects
+from contactpose.solvers import surface as solvers_surface
 from contactpose.solvers.closed_form import fit_poses
 from contactpose.solvers.surface import surface_fit
 
@@ -89,11 +90,12 @@ def _polar_reference(n, edges):
     return None if np.linalg.norm(y) < 1e-9 else y / np.linalg.norm(y)
 
 
-def _brute_cost(mesh, valid, p, n, sx, sn):
-    """Least whitened cost over every feature of the mesh (dense arcs, nnls cones)."""
+def _brute_cost(mesh, valid, p, n, sx, sn, features=None):
+    """Least whitened cost over every feature of the mesh (dense arcs, nnls cones);
+    features : _features(mesh, valid), when already listed."""
     tri = mesh.triangles
     normals = mesh.face_normals
-    faces, edges, vertices = _features(mesh, valid)
+    faces, edges, vertices = features or _features(mesh, valid)
     closest = trimesh.triangles.closest_point(tri[faces], np.repeat(p[None], len(faces), axis=0))
     d2 = np.sum((closest - p) ** 2, axis=1) / sx**2 + np.sum((normals[faces] - n) ** 2, axis=1) / sn**2
     best = d2.min()
@@ -101,9 +103,13 @@ def _brute_cost(mesh, valid, p, n, sx, sn):
         a, b = mesh.vertices[u], mesh.vertices[w]
         s = np.clip((p - a) @ (b - a) / ((b - a) @ (b - a)), 0, 1)
         x = a + s * (b - a)
+        if np.sum((x - p) ** 2) / sx**2 >= best:  # the normal's part only adds
+            continue
         cone = _cone_reference(n, normals[[f, g]])
         best = min(best, np.sum((x - p) ** 2) / sx**2 + np.sum((cone - n) ** 2) / sn**2)
     for v, directions in vertices:
+        if np.sum((mesh.vertices[v] - p) ** 2) / sx**2 >= best:
+            continue
         cone = _polar_reference(n, directions)
         if cone is not None:
             best = min(best, np.sum((mesh.vertices[v] - p) ** 2) / sx**2 + np.sum((cone - n) ** 2) / sn**2)
@@ -146,7 +152,8 @@ def test_surface_association_lands_on_the_least_cost_feature_of_the_whole_mesh(n
     returns, costs what the brute force over every feature of the mesh finds (dense arcs,
     nnls cones), for fingertip contacts with noise at a perturbed pose. On the rough bumpy
     sphere the facet of least plane cost (surface=False) lands elsewhere for some contacts."""
-    model = ObjectModel.from_mesh(_bumpy(seed=2, subdivisions=3, bump=0.1) if name == "bumpy" else objects.load(name))
+    mesh = _bumpy(seed=2, subdivisions=3, bump=0.1) if name == "bumpy" else objects.load(name)
+    model = ObjectModel.from_mesh(mesh, max_span=1e-9, patch_tol_deg=None)  # no search: no pair is tabled
     mesh = merged_mesh(model.vertices, model.faces)
     rng = np.random.default_rng(6)
     D = model.diameter
@@ -169,6 +176,43 @@ def test_surface_association_lands_on_the_least_cost_feature_of_the_whole_mesh(n
     assert np.all(by_planes.cost >= landed.cost - 1e-9)
     if name == "bumpy":
         assert np.any(by_planes.cost > landed.cost + 1.0)
+
+
+def test_surface_fit_ends_where_each_contact_sits_on_its_least_cost_feature_of_the_whole_mesh():
+    """On a rough mesh (a bumpy sphere of 5,120 facets, σ_x a fraction of a facet) the fit's
+    walk can stop with a contact on a feature behind a ridge of cost from its best. From
+    starts 4° and 2 % D off, the surface fit (which gathers the contacts' facets again over
+    the whole mesh) ends at a pose where χ²_S equals the brute-force least cost over every
+    feature in 9 grasps of 10 or more, the walk alone in fewer, and it never fits worse."""
+    model = ObjectModel.from_mesh(_bumpy(seed=2, subdivisions=4, bump=0.06), max_span=1e-9, patch_tol_deg=None)
+    mesh = merged_mesh(model.vertices, model.faces)  # no search here: a pair table that holds no pair
+    features = _features(mesh, model.planes.valid)
+    D = model.diameter
+    tol = Tolerance.from_noise(0.008 * D, 1.0)
+    rng = np.random.default_rng(8)
+    at_least = {"walk": 0, "gathered": 0}
+    for _ in range(10):
+        got = fingertip.approach(np.asarray(mesh.vertices), np.asarray(mesh.faces), rng, 4, 0.1 * D)
+        while not got.hit.all():
+            got = fingertip.approach(np.asarray(mesh.vertices), np.asarray(mesh.faces), rng, 4, 0.1 * D)
+        p = got.points + rng.normal(scale=tol.position_noise, size=(4, 3))
+        n = _unit(got.normals + rng.normal(scale=tol.normal_noise, size=(4, 3)))
+        contacts = Contacts(p, finger_normals=-n)
+        R0 = Rotation.from_rotvec(_unit(rng.normal(size=3)) * np.radians(4.0)).as_matrix()
+        t0 = 0.02 * D * _unit(rng.normal(size=3))
+        start = np.eye(4)
+        start[:3, :3], start[:3, 3] = R0, t0
+        facets = nearest_fit_facets(model, contacts, start, tol)
+        chi2 = {}
+        for kind, fit in (("walk", solvers_surface._walked_fit), ("gathered", surface_fit)):
+            R, t, _, _, _, chi2[kind] = fit(model, contacts, R0, t0, facets, tol)
+            q, nu = (p - t) @ R, n @ R
+            least = sum(_brute_cost(mesh, model.planes.valid, q[i], nu[i], tol.position_noise, tol.normal_noise,
+                                    features) for i in range(4))
+            assert least <= chi2[kind] * (1 + 1e-9) + 1e-9
+            at_least[kind] += bool(chi2[kind] <= least * (1 + 1e-6) + 1e-9)
+        assert chi2["gathered"] <= chi2["walk"] + 1e-9
+    assert at_least["gathered"] >= 9 and at_least["walk"] < at_least["gathered"], at_least
 
 
 def test_fingertip_contacts_at_non_convex_vertices_cost_nothing():
