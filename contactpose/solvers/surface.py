@@ -5,7 +5,9 @@ edge or vertex, a contact belongs to a neighbouring facet, or to an edge whose n
 holds its normal, and the plane pose is biased. Here each contact lands on the feature of
 least whitened cost near its facet (costs.surface.land), and the pose minimises χ²_S of
 costs.surface, the features found again at every evaluation (a compiled Levenberg–Marquardt on
-the rows of costs.surface.surface_rows), from a continuation in σ_x (:data:`CONTINUATION`).
+the rows of costs.surface.surface_rows), from a continuation in σ_x (:data:`CONTINUATION`);
+then each contact's facet of least surface cost over the whole mesh is gathered at the fitted
+pose and the fit runs on from there while χ²_S falls (:data:`REGATHERS`).
 """
 
 from __future__ import annotations
@@ -49,7 +51,7 @@ GATE_TOL = 1e-9
 #: is drawn to it instead of settling on the face (research/surface.md).
 CONTINUATION = (4.0, 1.0)
 #: surface_fit gathers the contacts' facets again over the whole mesh and fits on at most
-#: this many times (on the YCB wrench and hammer, 90 grasps: strict +5, +20 % time).
+#: this many times (on the YCB wrench and hammer, 90 grasps: strict +4 grasps, +20 % time).
 REGATHERS = 3
 
 
