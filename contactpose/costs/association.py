@@ -190,7 +190,7 @@ def _best_surface_fits(p, normals, candidates, starts, ends, triangles, facet_no
     reaches the least cost so far: (centroid distance - radius)² plus the normal misfit at
     the angle by which the contact's normal lies beyond the facet's spread (the widest its
     features admit). topology : model.surface.SurfaceTopology.arrays; spread : its spread (m,)."""
-    fv, vpos, edge_nbr, edge_convex, vf_ptr, vf, cone_ptr, cone_rays = topology
+    fv, vpos, edge_nbr, edge_convex, vf_ptr, vf, cone_ptr, cone_rays, cone_bound = topology
     m = p.shape[0]
     best, cost = np.empty(m, np.int64), np.empty(m)
     for i in range(m):
@@ -214,8 +214,8 @@ def _best_surface_fits(p, normals, candidates, starts, ends, triangles, facet_no
             beyond = max(np.arccos(max(-1.0, min(1.0, cos))) - spread[f], 0.0)
             if gap * gap + weight[i] * (2.0 - 2.0 * np.cos(beyond)) >= least:
                 continue
-            c = facet_surface_cost(x, n, f, fv, vpos, edge_nbr, edge_convex, cone_ptr, cone_rays, vf_ptr, vf,
-                                   triangles, facet_normals, weight[i])
+            c = facet_surface_cost(x, n, f, fv, vpos, edge_nbr, edge_convex, cone_ptr, cone_rays, cone_bound, vf_ptr,
+                                   vf, triangles, facet_normals, weight[i])
             if c < least:
                 least, pick = c, f
         best[i], cost[i] = pick, least

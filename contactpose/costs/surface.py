@@ -101,16 +101,16 @@ def land(topology, triangles, normals, valid, points, nu, start, sigma_position,
 
 
 @numba.njit(cache=True)
-def _land(fv, vpos, edge_nbr, edge_convex, vf_ptr, vf, cone_ptr, cone_rays, tri, normals, valid, points, nu, wx, wn,
-          cost, facet, kind, q, cone, pcode, pdir, ncode, arc):
+def _land(fv, vpos, edge_nbr, edge_convex, vf_ptr, vf, cone_ptr, cone_rays, cone_bound, tri, normals, valid, points,
+          nu, wx, wn, cost, facet, kind, q, cone, pcode, pdir, ncode, arc):
     for i in range(len(facet)):
         if facet[i] < 0:
             continue
         p, n = _t(points[i]), _t(nu[i])
         cur = facet[i]
         for _ in range(MAX_WALK):
-            best = _best_near(cur, p, n, fv, vpos, edge_nbr, edge_convex, vf_ptr, vf, cone_ptr, cone_rays, tri,
-                              normals, valid, wx, wn)
+            best = _best_near(cur, p, n, fv, vpos, edge_nbr, edge_convex, vf_ptr, vf, cone_ptr, cone_rays,
+                              cone_bound, tri, normals, valid, wx, wn)
             if best[1] == cur:
                 break
             cur = best[1]
@@ -121,8 +121,8 @@ def _land(fv, vpos, edge_nbr, edge_convex, vf_ptr, vf, cone_ptr, cone_rays, tri,
 
 
 @numba.njit(cache=True)
-def _best_near(cur, p, n, fv, vpos, edge_nbr, edge_convex, vf_ptr, vf, cone_ptr, cone_rays, tri, normals, valid, wx,
-               wn):
+def _best_near(cur, p, n, fv, vpos, edge_nbr, edge_convex, vf_ptr, vf, cone_ptr, cone_rays, cone_bound, tri, normals,
+               valid, wx, wn):
     """Least-cost feature among the faces, edges and vertices of the facets sharing a vertex
     with ``cur``. -> (cost, facet, kind, closest point, ν*, pcode, pdir, ncode, arc ends)"""
     zero = (0.0, 0.0, 0.0)
@@ -158,7 +158,7 @@ def _best_near(cur, p, n, fv, vpos, edge_nbr, edge_convex, vf_ptr, vf, cone_ptr,
                     continue
                 x = _t(vpos[w])
                 d2 = wx * _d2(p, x)
-                if d2 < best[0]:
+                if d2 + wn * _beyond_cone2(n, cone_bound[w]) < best[0]:
                     s, near, ncode, ea, eb = _cone_nearest(n, cone_rays[cone_ptr[w]:cone_ptr[w + 1]],
                                                            vf[vf_ptr[w]:vf_ptr[w + 1]], normals)
                     total = d2 + wn * _d2(n, s)
@@ -168,7 +168,8 @@ def _best_near(cur, p, n, fv, vpos, edge_nbr, edge_convex, vf_ptr, vf, cone_ptr,
 
 
 @numba.njit(cache=True)
-def facet_surface_cost(p, n, f, fv, vpos, edge_nbr, edge_convex, cone_ptr, cone_rays, vf_ptr, vf, tri, normals, w):
+def facet_surface_cost(p, n, f, fv, vpos, edge_nbr, edge_convex, cone_ptr, cone_rays, cone_bound, vf_ptr, vf, tri,
+                       normals, w):
     """The least cost, in length² (d² + w |ν − ν*|², w = σ_x²/σ_n²), of a contact (p, ν
     outward, 3-tuples) on facet f's own features: its face, its convex edges and its vertices
     with a normal cone. The surface model's cost of one facet, as :func:`_best_near` weighs the
@@ -186,11 +187,20 @@ def facet_surface_cost(p, n, f, fv, vpos, edge_nbr, edge_convex, cone_ptr, cone_
         u = fv[f, j]
         if cone_ptr[u + 1] > cone_ptr[u]:
             d2 = _d2(p, _t(vpos[u]))
-            if d2 < best:
+            if d2 + w * _beyond_cone2(n, cone_bound[u]) < best:
                 s, _, _, _, _ = _cone_nearest(n, cone_rays[cone_ptr[u]:cone_ptr[u + 1]], vf[vf_ptr[u]:vf_ptr[u + 1]],
                                               normals)
                 best = min(best, d2 + w * _d2(n, s))
     return best
+
+
+@numba.njit(cache=True)
+def _beyond_cone2(n, bound):
+    """A lower bound on |n − ν*|² over a vertex's cone, from its axis and half-angle
+    (model.surface.cone_bounds): the chord of the angle by which n lies beyond the half-angle."""
+    c = n[0] * bound[0] + n[1] * bound[1] + n[2] * bound[2]
+    beyond = np.arccos(max(-1.0, min(1.0, c))) - bound[3]
+    return 0.0 if beyond <= 0.0 else 2.0 - 2.0 * np.cos(beyond)
 
 
 @numba.njit(cache=True)
@@ -394,7 +404,7 @@ def surface_rows(R, t, points, finger_normals, facets, topology, tri, normals, v
     cost, kind, q, cone = np.zeros(n), np.zeros(n, np.int64), np.zeros((n, 3)), np.zeros((n, 3))
     pcode, pdir, ncode, arc = np.zeros(n, np.int64), np.zeros((n, 3)), np.zeros(n, np.int64), np.zeros((n, 2, 3))
     _land(topology[0], topology[1], topology[2], topology[3], topology[4], topology[5], topology[6], topology[7],
-          tri, normals, valid, p, nu,
+          topology[8], tri, normals, valid, p, nu,
           1.0 / sigma_position**2, 1.0 / sigma_normal**2, cost, facets, kind, q, cone, pcode, pdir, ncode, arc)
     used = 0
     for i in range(n):

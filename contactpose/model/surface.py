@@ -22,7 +22,8 @@ class SurfaceTopology:
     edge_nbr : (m, 3) the facet across edge j = (fv[:, j], fv[:, j+1]) (-1: none);
     edge_convex : (m, 3) bool; vf_ptr (V + 1,), vf : CSR valid facets at each vertex;
     cone_ptr (V + 1,), cone_rays (K, 3) : CSR unit rays spanning each vertex's normal cone
-    (:func:`normal_cone_rays`; none where a ball cannot touch the vertex alone); spread (m,) :
+    (:func:`normal_cone_rays`; none where a ball cannot touch the vertex alone); cone_bound
+    (V, 4) : a unit axis and a half-angle (radians) that hold each vertex's cone; spread (m,) :
     the largest angle (radians) from each facet's normal to a normal its own features admit
     (:func:`facet_spread`).
     """
@@ -35,6 +36,7 @@ class SurfaceTopology:
     vf: np.ndarray
     cone_ptr: np.ndarray
     cone_rays: np.ndarray
+    cone_bound: np.ndarray
     spread: np.ndarray
 
     @classmethod
@@ -65,13 +67,30 @@ class SurfaceTopology:
         normals = np.asarray(merged.face_normals, dtype=np.float64)
         cone_ptr, cone_rays = normal_cone_rays(points, fv[faces], vf_ptr, vf, normals)
         spread = facet_spread(fv, edge_nbr, edge_convex, cone_ptr, cone_rays, normals, valid)
-        return cls(fv, points, edge_nbr, edge_convex, vf_ptr, vf, cone_ptr, cone_rays, spread)
+        return cls(fv, points, edge_nbr, edge_convex, vf_ptr, vf, cone_ptr, cone_rays, cone_bounds(cone_ptr, cone_rays),
+                   spread)
 
     @property
     def arrays(self):
         """The arrays the compiled contact model takes (costs.surface.surface_rows), in order."""
         return (self.fv, self.points, self.edge_nbr, self.edge_convex, self.vf_ptr, self.vf, self.cone_ptr,
-                self.cone_rays)
+                self.cone_rays, self.cone_bound)
+
+
+def cone_bounds(cone_ptr, rays):
+    """Per vertex, a unit axis (the normalised sum of its cone's rays) and the largest angle
+    from it to a ray: every direction of the (convex) cone lies within that angle of the axis,
+    so a normal θ from the axis is at least θ − half from the cone. -> (V, 4), axis then half;
+    (0, 0, 0, 0) for a vertex without a cone."""
+    nv = len(cone_ptr) - 1
+    owner = np.repeat(np.arange(nv), np.diff(cone_ptr))
+    axis = np.zeros((nv, 3))
+    np.add.at(axis, owner, rays)
+    norm = np.linalg.norm(axis, axis=1, keepdims=True)
+    axis = np.divide(axis, norm, out=np.zeros_like(axis), where=norm > 1e-12)
+    half = np.zeros(nv)
+    np.maximum.at(half, owner, np.arccos(np.clip(np.sum(axis[owner] * rays, axis=1), -1.0, 1.0)))
+    return np.column_stack([axis, half])
 
 
 def normal_cone_rays(points, faces, vf_ptr, vf, face_normals):

@@ -53,13 +53,15 @@ CONTINUATION = (4.0, 1.0)
 #: surface_fit gathers the contacts' facets again over the whole mesh and fits on at most
 #: this many times (on the YCB wrench and hammer, 90 grasps: strict +4 grasps, +20 % time).
 REGATHERS = 3
+#: ... when the gathered features cost less than the fit's by more than this (relative).
+GATHER_TOL = 1e-9
 
 
 def surface_fit(model, contacts, R, t, facets, tolerance):
     """The pose of least χ²_S from (R, t), the contacts walking from ``facets`` (n,; −1: left
     out), then gathered again: each contact's facet of least surface cost over the whole mesh
-    at the fitted pose (costs.association.nearest_fit_facets with ``surface``); where that
-    moves a contact, the fit runs on from there, up to REGATHERS times while χ²_S falls. The
+    at the fitted pose (costs.association.nearest_fit_facets with ``surface``); where a
+    contact lands cheaper from there, the fit runs on from it, up to REGATHERS times while χ²_S falls. The
     walk finds a contact's least-cost feature near where it was; a rough scan has ridges of
     that cost between the two.
 
@@ -72,8 +74,8 @@ def surface_fit(model, contacts, R, t, facets, tolerance):
         pose = np.eye(4)
         pose[:3, :3], pose[:3, 3] = got[0], got[1]
         gathered = np.where(used, nearest_fit_facets(model, contacts, pose, tolerance, surface=True), -1)
-        if np.array_equal(gathered, got[2]):
-            break
+        if np.nansum(landing(model, contacts, got[0], got[1], gathered, tolerance).cost) >= got[5] * (1 - GATHER_TOL):
+            break  # each contact already sits on its least-cost feature (or one as good)
         again = _walked_fit(model, contacts, got[0], got[1], gathered, tolerance)
         if again[5] >= got[5]:
             break
