@@ -183,7 +183,7 @@ def test_surface_fit_ends_where_each_contact_sits_on_its_least_cost_feature_of_t
     walk can stop with a contact on a feature behind a ridge of cost from its best. From
     starts 4° and 2 % D off, the surface fit (which gathers the contacts' facets again over
     the whole mesh) ends at a pose where χ²_S equals the brute-force least cost over every
-    feature in 9 grasps of 10 or more, the walk alone in fewer, and it never fits worse."""
+    feature in 5 grasps of 6 or more, the walk alone in fewer, and it never fits worse."""
     model = ObjectModel.from_mesh(_bumpy(seed=2, subdivisions=4, bump=0.06), max_span=1e-9, patch_tol_deg=None)
     mesh = merged_mesh(model.vertices, model.faces)  # no search here: a pair table that holds no pair
     features = _features(mesh, model.planes.valid)
@@ -191,7 +191,7 @@ def test_surface_fit_ends_where_each_contact_sits_on_its_least_cost_feature_of_t
     tol = Tolerance.from_noise(0.008 * D, 1.0)
     rng = np.random.default_rng(8)
     at_least = {"walk": 0, "gathered": 0}
-    for _ in range(10):
+    for _ in range(6):
         got = fingertip.approach(np.asarray(mesh.vertices), np.asarray(mesh.faces), rng, 4, 0.1 * D)
         while not got.hit.all():
             got = fingertip.approach(np.asarray(mesh.vertices), np.asarray(mesh.faces), rng, 4, 0.1 * D)
@@ -212,7 +212,7 @@ def test_surface_fit_ends_where_each_contact_sits_on_its_least_cost_feature_of_t
             assert least <= chi2[kind] * (1 + 1e-9) + 1e-9
             at_least[kind] += bool(chi2[kind] <= least * (1 + 1e-6) + 1e-9)
         assert chi2["gathered"] <= chi2["walk"] + 1e-9
-    assert at_least["gathered"] >= 9 and at_least["walk"] < at_least["gathered"], at_least
+    assert at_least["gathered"] >= 5 and at_least["walk"] < at_least["gathered"], at_least
 
 
 def test_fingertip_contacts_at_non_convex_vertices_cost_nothing():
