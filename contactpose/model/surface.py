@@ -79,9 +79,10 @@ class SurfaceTopology:
 
 def cone_bounds(cone_ptr, rays):
     """Per vertex, a unit axis (the normalised sum of its cone's rays) and the largest angle
-    from it to a ray: every direction of the (convex) cone lies within that angle of the axis,
-    so a normal θ from the axis is at least θ − half from the cone. -> (V, 4), axis then half;
-    (0, 0, 0, 0) for a vertex without a cone."""
+    from it to a ray: under a right angle, every direction of the (convex) cone lies within
+    that angle of the axis (the cap is convex and holds the rays), so a normal θ from the axis
+    is at least θ − half from the cone; π past it. -> (V, 4), axis then half; (0, 0, 0, 0) for
+    a vertex without a cone."""
     nv = len(cone_ptr) - 1
     owner = np.repeat(np.arange(nv), np.diff(cone_ptr))
     axis = np.zeros((nv, 3))
@@ -90,6 +91,7 @@ def cone_bounds(cone_ptr, rays):
     axis = np.divide(axis, norm, out=np.zeros_like(axis), where=norm > 1e-12)
     half = np.zeros(nv)
     np.maximum.at(half, owner, np.arccos(np.clip(np.sum(axis[owner] * rays, axis=1), -1.0, 1.0)))
+    half[half >= np.pi / 2] = np.pi  # a cap past a right angle is not convex: no bound
     return np.column_stack([axis, half])
 
 
@@ -123,9 +125,10 @@ def normal_cone_rays(points, faces, vf_ptr, vf, face_normals):
 def facet_spread(fv, edge_nbr, edge_convex, cone_ptr, cone_rays, normals, valid):
     """The largest angle (radians) from each valid facet's normal to a normal one of its own
     features admits: its convex edges' arcs reach the neighbour's normal, its vertices' cones
-    their rays (cones are convex, so their rays bound them). A contact whose normal is θ from
-    the facet's is at least θ − spread from every feature of it (a lower bound that lets the
-    surface association skip the facet). -> (m,), 0 for an invalid facet"""
+    their rays (cones are convex, so under a right angle their rays bound them; π past it). A
+    contact whose normal is θ from the facet's is at least θ − spread from every feature of it
+    (a lower bound that lets the surface association skip the facet). -> (m,), 0 for an
+    invalid facet"""
     out = np.zeros(len(fv))
     for f in range(len(fv)):
         if not valid[f]:
@@ -138,7 +141,7 @@ def facet_spread(fv, edge_nbr, edge_convex, cone_ptr, cone_rays, normals, valid)
             u = fv[f, j]
             for r in range(cone_ptr[u], cone_ptr[u + 1]):
                 widest = min(widest, normals[f] @ cone_rays[r])
-        out[f] = np.arccos(max(-1.0, min(1.0, widest)))
+        out[f] = np.arccos(max(-1.0, min(1.0, widest))) if widest > 0.0 else np.pi  # a cap past a right angle: no bound
     return out
 
 
