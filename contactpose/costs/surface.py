@@ -130,40 +130,50 @@ def _best_near(cur, p, n, fv, vpos, edge_nbr, edge_convex, vf_ptr, vf, cone_ptr,
     for c in range(3):
         u = fv[cur, c]
         for e in range(vf_ptr[u], vf_ptr[u + 1]):
-            g = vf[e]
-            x, code, direction = _triangle_feature(p, _t(tri[g, 0]), _t(tri[g, 1]), _t(tri[g, 2]))
-            d2 = wx * _d2(p, x)
-            if d2 < best[0]:
-                ng = _t(normals[g])
-                total = d2 + wn * _d2(n, ng)
-                if total < best[0]:
-                    best = (total, g, FACE, x, ng, code, direction, 0, zero, zero)
-            for j in range(3):
-                h = edge_nbr[g, j]
-                if h < 0 or not edge_convex[g, j]:
-                    continue
-                a, b = _t(vpos[fv[g, j]]), _t(vpos[fv[g, (j + 1) % 3]])
-                x, code, direction = _segment_feature(p, a, b)
-                d2 = wx * _d2(p, x)
-                if d2 < best[0]:
-                    ng, nh = _t(normals[g]), _t(normals[h])
-                    s, inner = _arc_nearest(n, ng, nh)
-                    total = d2 + wn * _d2(n, s)
-                    if total < best[0]:
-                        best = (total, g if _dot(s, ng) >= _dot(s, nh) else h, EDGE, x, s, code, direction,
-                                1 if inner else 0, ng, nh)
-            for j in range(3):
-                w = fv[g, j]
-                if cone_ptr[w + 1] == cone_ptr[w]:
-                    continue
-                x = _t(vpos[w])
-                d2 = wx * _d2(p, x)
-                if d2 + wn * _beyond_cone2(n, cone_bound[w]) < best[0]:
-                    s, near, ncode, ea, eb = _cone_nearest(n, cone_rays[cone_ptr[w]:cone_ptr[w + 1]],
-                                                           vf[vf_ptr[w]:vf_ptr[w + 1]], normals)
-                    total = d2 + wn * _d2(n, s)
-                    if total < best[0]:
-                        best = (total, near, VERTEX, x, s, 0, zero, ncode, ea, eb)
+            best = _facet_features(best, p, n, vf[e], fv, vpos, edge_nbr, edge_convex, vf_ptr, vf, cone_ptr,
+                                   cone_rays, cone_bound, tri, normals, wx, wn)
+    return best
+
+
+@numba.njit(cache=True)
+def _facet_features(best, p, n, g, fv, vpos, edge_nbr, edge_convex, vf_ptr, vf, cone_ptr, cone_rays, cone_bound, tri,
+                    normals, wx, wn):
+    """``best`` (as :func:`_best_near` returns it) or, where cheaper, one of facet g's own
+    features: its face, its convex edges, its vertices with a normal cone."""
+    zero = (0.0, 0.0, 0.0)
+    x, code, direction = _triangle_feature(p, _t(tri[g, 0]), _t(tri[g, 1]), _t(tri[g, 2]))
+    d2 = wx * _d2(p, x)
+    if d2 < best[0]:
+        ng = _t(normals[g])
+        total = d2 + wn * _d2(n, ng)
+        if total < best[0]:
+            best = (total, g, FACE, x, ng, code, direction, 0, zero, zero)
+    for j in range(3):
+        h = edge_nbr[g, j]
+        if h < 0 or not edge_convex[g, j]:
+            continue
+        a, b = _t(vpos[fv[g, j]]), _t(vpos[fv[g, (j + 1) % 3]])
+        x, code, direction = _segment_feature(p, a, b)
+        d2 = wx * _d2(p, x)
+        if d2 < best[0]:
+            ng, nh = _t(normals[g]), _t(normals[h])
+            s, inner = _arc_nearest(n, ng, nh)
+            total = d2 + wn * _d2(n, s)
+            if total < best[0]:
+                best = (total, g if _dot(s, ng) >= _dot(s, nh) else h, EDGE, x, s, code, direction,
+                        1 if inner else 0, ng, nh)
+    for j in range(3):
+        w = fv[g, j]
+        if cone_ptr[w + 1] == cone_ptr[w]:
+            continue
+        x = _t(vpos[w])
+        d2 = wx * _d2(p, x)
+        if d2 + wn * _beyond_cone2(n, cone_bound[w]) < best[0]:
+            s, near, ncode, ea, eb = _cone_nearest(n, cone_rays[cone_ptr[w]:cone_ptr[w + 1]],
+                                                   vf[vf_ptr[w]:vf_ptr[w + 1]], normals)
+            total = d2 + wn * _d2(n, s)
+            if total < best[0]:
+                best = (total, near, VERTEX, x, s, 0, zero, ncode, ea, eb)
     return best
 
 
@@ -171,27 +181,12 @@ def _best_near(cur, p, n, fv, vpos, edge_nbr, edge_convex, vf_ptr, vf, cone_ptr,
 def facet_surface_cost(p, n, f, fv, vpos, edge_nbr, edge_convex, cone_ptr, cone_rays, cone_bound, vf_ptr, vf, tri,
                        normals, w):
     """The least cost, in length² (d² + w |ν − ν*|², w = σ_x²/σ_n²), of a contact (p, ν
-    outward, 3-tuples) on facet f's own features: its face, its convex edges and its vertices
-    with a normal cone. The surface model's cost of one facet, as :func:`_best_near` weighs the
-    features around it (times σ_x²)."""
-    x, _, _ = _triangle_feature(p, _t(tri[f, 0]), _t(tri[f, 1]), _t(tri[f, 2]))
-    best = _d2(p, x) + w * _d2(n, _t(normals[f]))
-    for j in range(3):
-        h = edge_nbr[f, j]
-        if h >= 0 and edge_convex[f, j]:
-            a, b = _t(vpos[fv[f, j]]), _t(vpos[fv[f, (j + 1) % 3]])
-            d2 = _d2(p, _closest_on_segment(p, a, b))
-            if d2 < best:
-                s, _ = _arc_nearest(n, _t(normals[f]), _t(normals[h]))
-                best = min(best, d2 + w * _d2(n, s))
-        u = fv[f, j]
-        if cone_ptr[u + 1] > cone_ptr[u]:
-            d2 = _d2(p, _t(vpos[u]))
-            if d2 + w * _beyond_cone2(n, cone_bound[u]) < best:
-                s, _, _, _, _ = _cone_nearest(n, cone_rays[cone_ptr[u]:cone_ptr[u + 1]], vf[vf_ptr[u]:vf_ptr[u + 1]],
-                                              normals)
-                best = min(best, d2 + w * _d2(n, s))
-    return best
+    outward, 3-tuples) on facet f's own features (:func:`_facet_features` with σ_x = 1): the
+    surface model's cost of one facet."""
+    zero = (0.0, 0.0, 0.0)
+    start = (np.inf, f, FACE, p, n, 0, zero, 0, zero, zero)
+    return _facet_features(start, p, n, f, fv, vpos, edge_nbr, edge_convex, vf_ptr, vf, cone_ptr, cone_rays,
+                           cone_bound, tri, normals, 1.0, w)[0]
 
 
 @numba.njit(cache=True)
