@@ -376,15 +376,19 @@ def surface_hypotheses(model, contacts, arrays, tolerance, deadline, k=SURFACE_R
     facets (solvers.surface.surface_poses): their facets those the contacts land on, their
     residuals the contact model's; re-ranked, then one per distinct pose (:func:`distinct`).
     multistart : the best MULTISTART_ROWS of those then fitted again from starts around their
-    poses too, where that lowers χ² (solvers.surface.multistart_poses). every : the
+    poses too, where that lowers χ² (solvers.surface.multistart_poses), and the other ends
+    that fit within noise listed beside the distinct poses (:func:`_with_basins`). every : the
     assignments before the distinct-pose grouping; when the best still does not fit within
     noise, its near-copies among them are fitted too (:func:`_refit_near_copies`)."""
     arrays = _moved(model, contacts, arrays, tolerance, surface_poses(model, contacts, arrays, tolerance, k))
+    basins = None
     if multistart and len(arrays.cost) and not deadline.passed:
-        arrays = _moved(model, contacts, arrays, tolerance, multistart_poses(model, contacts, arrays, tolerance))
+        lowered, basins = multistart_poses(model, contacts, arrays, tolerance)
+        arrays = _moved(model, contacts, arrays, tolerance, lowered)
     if every is not None and len(arrays.cost) and arrays.chi2[0] > fit_threshold(contacts.n) and not deadline.passed:
         arrays = _refit_near_copies(model, contacts, arrays, every, tolerance)
-    return distinct(model, arrays, tolerance, deadline, merge_twins)
+    arrays = distinct(model, arrays, tolerance, deadline, merge_twins)
+    return arrays if basins is None else _with_basins(model, contacts, arrays, tolerance, basins)
 
 
 def _moved(model, contacts, arrays, tolerance, posed):
@@ -396,6 +400,20 @@ def _moved(model, contacts, arrays, tolerance, posed):
         return arrays
     moved = ranking.hypothesis_arrays(model, contacts, facets, fit, tolerance, order=False, surface=landed)
     return _first_of_each_tuple(ranking.replaced(arrays, rows, moved))
+
+
+def _with_basins(model, contacts, arrays, tolerance, basins):
+    """The ranked hypotheses and, as hypotheses of their own, the multistart's other ends
+    that fit within noise (rows, fit, facets, landing, as solvers.surface.multistart_poses
+    returns them), re-ranked, a tuple found twice kept once. They are near-copies of the
+    pose they started from (scoring.classes.distinct_radius), but on a rough scan a pose a
+    few degrees from the best may fit nearly as well, and the placements weigh it only if it
+    is listed (research/sure.md, "Basins beside the best")."""
+    rows, fit, facets, landed = basins
+    if not len(rows):
+        return arrays
+    ends = ranking.hypothesis_arrays(model, contacts, facets, fit, tolerance, order=False, surface=landed)
+    return _first_of_each_tuple(arrays.merged(ends))
 
 
 def _refit_near_copies(model, contacts, arrays, every, tolerance):

@@ -23,7 +23,7 @@ from contactpose.costs.association import nearest_fit_facets
 from contactpose.costs.frame import object_frame
 from contactpose.costs.surface import SurfaceResiduals, face_costs, landing, surface_residuals, surface_rows
 from contactpose.geometry.se3 import retract3
-from contactpose.options import outlier_penalty
+from contactpose.options import fit_threshold, outlier_penalty
 from contactpose.solvers.closed_form import free_directions
 
 #: Residual evaluations of one stage of a surface fit.
@@ -210,13 +210,21 @@ def _surface_starts(model, contacts, poses, facets, tolerance):
 
 def multistart_poses(model, contacts, arrays, tolerance, k=MULTISTART_ROWS):
     """The best ``k`` determined hypotheses of the ranked arrays fitted on the surface from
-    each of :func:`multistart_starts` around their poses (:func:`multistart_fit`), those
-    whose least χ²_S (outlier penalty included) is below their χ²; returns as
-    :func:`surface_poses` does."""
+    each of :func:`multistart_starts` around their poses (:func:`multistart_ends`). Returns
+    (lowered, basins), each as :func:`surface_poses` returns: ``lowered``, each row moved to
+    its end of least χ²_S where that (outlier penalty included) is below its χ²; ``basins``,
+    the other ends that fit within noise (fit_threshold), each a pose of its own for the
+    placements' evidence (research/sure.md, "Basins beside the best")."""
     rows = np.flatnonzero(~arrays.fit.underdetermined)[:k]
-    fits = [(r, multistart_fit(model, contacts, arrays.fit.R[r], arrays.fit.t[r], arrays.facets[r], tolerance))
-            for r in rows]
-    return _lowered(arrays, fits, tolerance)
+    least, basins = [], []
+    limit = fit_threshold(contacts.n)
+    for r in rows:
+        ends = multistart_ends(model, contacts, arrays.fit.R[r], arrays.fit.t[r], arrays.facets[r], tolerance)
+        best = int(np.argmin([got[5] for got in ends]))
+        least.append((r, ends[best]))
+        penalty = outlier_penalty(arrays.facets[r:r + 1])[0]
+        basins += [(r, got) for i, got in enumerate(ends) if i != best and got[5] + penalty <= limit]
+    return _lowered(arrays, least, tolerance), _posed(arrays, basins, tolerance)
 
 
 def multistart_starts(R, t, diameter):
@@ -232,25 +240,34 @@ def multistart_starts(R, t, diameter):
     return starts
 
 
-def multistart_fit(model, contacts, R, t, facets, tolerance):
-    """The :func:`surface_fit` of least χ²_S among those from (R, t) walking from ``facets``
-    and from each of :func:`multistart_starts`, each contact walking from its facet of least
-    surface cost there (:func:`_surface_starts`; an unassigned finger, facet −1, stays out).
-    Returns as :func:`surface_fit` does."""
-    best = surface_fit(model, contacts, R, t, facets, tolerance)
+def multistart_ends(model, contacts, R, t, facets, tolerance):
+    """The :func:`surface_fit` from (R, t) walking from ``facets`` and from each of
+    :func:`multistart_starts`, each contact walking from its facet of least surface cost
+    there (:func:`_surface_starts`; an unassigned finger, facet −1, stays out): 13 results
+    as :func:`surface_fit` returns them, the first from (R, t)."""
     starts = multistart_starts(R, t, model.diameter)
     nearest = _surface_starts(model, contacts, starts, np.broadcast_to(facets, (len(starts), len(facets))), tolerance)
-    for pose, start in zip(starts, nearest):
-        got = surface_fit(model, contacts, pose[:3, :3], pose[:3, 3], start, tolerance)
-        if got[5] < best[5]:
-            best = got
-    return best
+    return [surface_fit(model, contacts, R, t, facets, tolerance)] + \
+        [surface_fit(model, contacts, pose[:3, :3], pose[:3, 3], start, tolerance) for pose, start in zip(starts, nearest)]
+
+
+def multistart_fit(model, contacts, R, t, facets, tolerance):
+    """The one of :func:`multistart_ends` of least χ²_S (the first on a tie)."""
+    ends = multistart_ends(model, contacts, R, t, facets, tolerance)
+    return ends[int(np.argmin([got[5] for got in ends]))]
 
 
 def _lowered(arrays, fits, tolerance):
     """Of fits [(row, surface_fit result)], those whose χ²_S (outlier penalty included) is below
-    the row's χ², as :func:`surface_poses` returns them."""
-    fits = [(r, got) for r, got in fits if got[5] + outlier_penalty(arrays.facets[r:r + 1])[0] < arrays.chi2[r]]
+    the row's χ², as :func:`surface_poses` returns them (:func:`_posed`)."""
+    return _posed(arrays, [(r, got) for r, got in fits
+                           if got[5] + outlier_penalty(arrays.facets[r:r + 1])[0] < arrays.chi2[r]], tolerance)
+
+
+def _posed(arrays, fits, tolerance):
+    """Fits [(row, surface_fit result)] as :func:`surface_poses` returns them: (rows (K,) int,
+    PoseFit of the surface poses (what each leaves free from the features it lands on),
+    facets (K, n) int, (cone directions (K, n, 3), distances (K, n)) or None when K = 0)."""
     rows = np.array([r for r, _ in fits], dtype=np.int64)
     fit = arrays.fit.take(rows)
     if not fits:

@@ -1,5 +1,6 @@
 """Starts around a pose (solvers.surface.multistart_fit) against brute force and a known answer:
-the least χ²_S of the surface fits from each start, and, from poses 5° off on the rock1k's
+the least χ²_S of the surface fits from each start, the other ends that fit within noise
+(multistart_poses' basins), and, from poses 5° off on the rock1k's
 rough surface, the true placement's own fit (the surface fit from the true pose) where the
 plain fit stops in a local minimum."""
 
@@ -11,14 +12,24 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from contactpose import Contacts, ObjectModel
+from contactpose import Contacts, ObjectModel, localize
 from contactpose.contacts import Tolerance
 from contactpose.costs.association import nearest_fit_facets
+from contactpose.costs.surface import surface_residuals
 from contactpose.geometry.metrics import rotation_error_deg
 from contactpose.geometry.sampling import perturb_normals
+from contactpose.options import fit_threshold
 from contactpose.sim import fingertip, objects
 from contactpose.sim import grasps as simulate
-from contactpose.solvers.surface import MULTISTART_SHIFT_FRAC, MULTISTART_TURN_DEG, multistart_fit, multistart_starts, surface_fit
+from contactpose.solvers.surface import (
+    MULTISTART_ROWS,
+    MULTISTART_SHIFT_FRAC,
+    MULTISTART_TURN_DEG,
+    multistart_fit,
+    multistart_poses,
+    multistart_starts,
+    surface_fit,
+)
 
 OFF_DEG = 5.0
 
@@ -109,3 +120,32 @@ def test_multistart_reaches_the_true_placement_where_the_plain_fit_stops(rock1k)
         reached += got[5] <= truth[5] + 1e-6 and rotation_error_deg(a, b) < 2.0
     assert stuck >= 10
     assert reached >= 0.5 * stuck
+
+
+def test_the_basins_are_every_other_end_that_fits_within_noise(rock1k):
+    """Brute force: the ends multistart_poses lists beside each row's least are exactly the
+    other surface fits, from the row's pose and from each start, whose χ²_S is within
+    fit_threshold; the least moves the row only where it lowers the row's χ²."""
+    tolerance = Tolerance.from_noise(0.0025 * rock1k.diameter, 1.0)
+    limit = fit_threshold(4)
+    seen = 0
+    for contacts, pose, _ in grasps(rock1k, 3, seed=21):
+        arrays = localize(rock1k, contacts, position_noise=tolerance.position_noise, normal_noise_deg=1.0,
+                          surface=True, keep="all", diagnose=False).hypotheses.arrays
+        (rows, fit, _, _), (brows, bfit, bfacets, _) = multistart_poses(rock1k, contacts, arrays, tolerance)
+        expected, lowered = [], []
+        for r in np.flatnonzero(~arrays.fit.underdetermined)[:MULTISTART_ROWS]:
+            R, t = arrays.fit.R[r], arrays.fit.t[r]
+            ends = [surface_fit(rock1k, contacts, R, t, arrays.facets[r], tolerance)] + \
+                [fit_from(rock1k, contacts, s, tolerance) for s in multistart_starts(R, t, rock1k.diameter)]
+            chi2 = np.array([e[5] for e in ends])
+            least = int(np.argmin(chi2))
+            expected += [(r, c) for i, c in enumerate(chi2) if i != least and c <= limit]
+            lowered += [r] if chi2[least] < arrays.chi2[r] else []
+        got = sorted((int(r), float(np.sum(surface_residuals(rock1k, contacts, R, t, f, tolerance) ** 2)))
+                     for r, R, t, f in zip(brows, bfit.R, bfit.t, bfacets))
+        assert [r for r, _ in got] == sorted(r for r, _ in expected)
+        assert np.allclose([c for _, c in got], [c for _, c in sorted(expected)], rtol=1e-9)
+        assert sorted(rows.tolist()) == sorted(lowered)
+        seen += len(got)
+    assert seen > 0
