@@ -13,8 +13,10 @@ the facets' bounds count where the Laplace approximation would ignore them. The 
 p_k = Z_k / Σ Z are the placements' probabilities.
 
 The answer's confidence is the probability that its best pose is *strictly* right (rotation
-error below 5°, translation below 5 % of the diameter, geometry.metrics.pose_success):
-p_best times the share of Z_best inside that box. A placement whose information matrix is
+error below 5°, translation below 5 % of the diameter, geometry.metrics.pose_success): the
+share of Σ Z inside that box around the best pose, each placement's sampled evidence counting
+where it lies there (a placement 5-10° from the best, a basin of the same valley, holds part
+of it). A placement whose information matrix is
 singular (a family of poses) holds no share and has no strict mass.
 """
 
@@ -79,10 +81,12 @@ def surface_chi2(model, contacts, poses, facets, tolerance):
     return got.cost.reshape(k, n).sum(axis=1)
 
 
-def posterior(model, contacts, pose, facets, tolerance, covariance, chi2, others=None, symmetry=None, prior=None):
+def posterior(model, contacts, pose, facets, tolerance, covariance, chi2, others=None, symmetry=None, prior=None,
+              center=None):
     """(log evidence, strict mass) of one placement: the evidence log ∫ exp(-½ χ²_S) dξ over
-    right perturbations ξ of ``pose`` (4, 4), and the share of it with |ω| below 5° and |v|
-    (the object origin's shift) below 5 % of the diameter, by importance sampling with the
+    right perturbations ξ of ``pose`` (4, 4), and the share of it strictly alike ``center``
+    (4, 4; None: ``pose`` itself, |ω| below 5° and |v|, the object origin's shift, below 5 %
+    of the diameter; else modulo ``symmetry``), by importance sampling with the
     Laplace covariance (6, 6) widened PROPOSAL_SCALE times as the proposal (the contacts
     landing from ``facets``, so the facets' bounds and neighbours count, which the Laplace
     approximation misses). others : (K, 4, 4) the other placements' poses: a draw nearer
@@ -106,7 +110,9 @@ def posterior(model, contacts, pose, facets, tolerance, covariance, chi2, others
     top = log_w.max()
     w = np.exp(log_w - top)
     log_z = top + np.log(w.mean()) + np.sum(np.log(np.diag(L))) + 3.0 * np.log(2.0 * np.pi)
-    return float(log_z), float(w[_inside_box(xi, model.diameter)].sum() / w.sum())
+    inside = (_inside_box(xi, model.diameter) if center is None
+              else _box_distance(poses, center, symmetry, model.diameter) < 1.0)
+    return float(log_z), float(w[inside].sum() / w.sum())
 
 
 def _prior_distance2(R, t, prior):
@@ -177,7 +183,9 @@ def strict_groups(poses, symmetry, diameter, limit=MAX_PLACEMENTS):
 def placements(model, contacts, arrays, fits, tolerance, symmetry, prior=None):
     """The distinct placements of the ranked hypotheses (HypothesisArrays) that fit within
     noise (fits (H,) bool), best first, with their probabilities, and the confidence that the
-    best's pose is strictly right (its probability times its strict mass).
+    best's pose is strictly right: Σ_k p_k m_k, m_k the share of placement k's evidence
+    strictly alike the best's pose (a placement a few degrees off, the far end of one broad
+    valley, holds some of the best's box too).
 
     The Laplace evidence (:func:`laplace_log_evidence`) weighs them first; those holding at
     least SAMPLED_SHARE of it are weighed again by :func:`posterior`'s sampling, unless the
@@ -196,18 +204,19 @@ def placements(model, contacts, arrays, fits, tolerance, symmetry, prior=None):
     leaders = np.stack([p.pose for p in found])
     log_z = laplace_log_evidence(found) - 0.5 * _prior_distance2(leaders[:, :3, :3], leaders[:, :3, 3], prior)
     shares = _shares(log_z)
-    mass = _box_mass(found[0].covariance, model.diameter)
+    mass = np.zeros(len(found))
+    mass[0] = _box_mass(found[0].covariance, model.diameter)
     sampled = np.flatnonzero(shares >= SAMPLED_SHARE)
-    if len(sampled) > 1 or mass < STRICT_MASS_SURE:
+    if len(sampled) > 1 or mass[0] < STRICT_MASS_SURE:
         for k in sampled:
             p = found[k]
-            log_z[k], m = posterior(model, contacts, p.pose, arrays.facets[p.best], tolerance, p.covariance, p.chi2,
-                                    np.delete(leaders, k, axis=0), symmetry, prior)
-            mass = m if k == 0 else mass
+            log_z[k], mass[k] = posterior(model, contacts, p.pose, arrays.facets[p.best], tolerance, p.covariance,
+                                          p.chi2, np.delete(leaders, k, axis=0), symmetry, prior,
+                                          center=None if k == 0 else leaders[0])
         shares = _shares(log_z)
     for p, share in zip(found, shares):
         p.probability = float(share)
-    return found, float(shares[0] * mass)
+    return found, float(shares @ mass)
 
 
 def laplace_log_evidence(found):

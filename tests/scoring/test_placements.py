@@ -150,3 +150,46 @@ def test_ok_probability_sets_the_bar():
     assert r.status == "ok" and r.confidence >= 0.1
     with pytest.raises(cp.ContactPoseError, match="ok_probability must be a probability in"):
         cp.localize(model, contacts, **NOISE, ok_probability=1.5)
+
+
+
+def test_the_confidence_counts_every_placement_inside_the_best_box():
+    """Two placements 5.5° apart along the posterior's loosest turn (the far end of a valley):
+    the confidence that the best pose is strictly right is the posterior's mass within 5° and
+    5 % of the diameter of it, part of which lies nearer the other placement and is counted by
+    that placement's draws. The reference integrates exp(-½ χ²_S) by importance sampling with
+    200,000 draws of a Gaussian twice the Laplace width, covering both placements."""
+    from types import SimpleNamespace
+
+    from contactpose.contacts import Tolerance
+    from contactpose.costs.association import nearest_fit_facets
+    from contactpose.geometry.se3 import retract
+    from contactpose.scoring.placements import _box_distance, laplace_covariance, placements, surface_chi2
+
+    model = cp.ObjectModel.from_mesh(box_mesh(cut=True))
+    group = symmetry(model)
+    T, contacts = grasp(np.random.default_rng(4))
+    tolerance = Tolerance.from_noise(2e-3, 4.0)                 # a broad posterior: σ of a few degrees
+    facets = nearest_fit_facets(model, contacts, T, tolerance)
+    covariance = laplace_covariance(model, contacts, T, facets, tolerance)
+    sd, loosest = np.sqrt(np.diag(covariance)), np.linalg.eigh(covariance[:3, :3])[1][:, -1]
+    turn = np.eye(4)
+    turn[:3, :3] = Rotation.from_rotvec(np.radians(5.5) * loosest).as_matrix()
+    poses = np.stack([T, T @ turn])
+    arrays = SimpleNamespace(poses=poses, chi2=surface_chi2(model, contacts, poses, facets, tolerance),
+                             facets=np.stack([facets, facets]))
+    found, confidence = placements(model, contacts, arrays, np.ones(2, dtype=bool), tolerance, group)
+    assert len(found) == 2
+
+    xi = np.random.default_rng(0).standard_normal((200_000, 6)) * 2.0 * sd
+    R, t = retract(np.repeat(T[None, :3, :3], len(xi), axis=0), np.repeat(T[None, :3, 3], len(xi), axis=0), xi)
+    draws = np.zeros((len(xi), 4, 4))
+    draws[:, :3, :3], draws[:, :3, 3], draws[:, 3, 3] = R, t, 1.0
+    log_w = (-0.5 * surface_chi2(model, contacts, draws, facets, tolerance)
+             + 0.5 * np.sum((xi / (2.0 * sd)) ** 2, axis=1))
+    w = np.exp(log_w - log_w.max())
+    w /= w.sum()
+    to_best, to_other = (_box_distance(draws, P, group, model.diameter) for P in poses)
+    assert w[(to_best < 1.0) & (to_other < to_best)].sum() > 0.05   # the other's draws hold part of the box
+    assert found[0].probability == pytest.approx(w[to_best <= to_other].sum(), abs=0.03)
+    assert confidence == pytest.approx(w[to_best < 1.0].sum(), abs=0.03)
