@@ -6,10 +6,11 @@ diameter) are one (:func:`strict_groups`). A near-symmetric flip (a banana turne
 end, a box a quarter turn) is a placement of its own, though its surface lies almost where
 the truth's does. Each placement is weighed by its evidence on the surface contact model
 (costs.surface), Z_k = ∫ exp(-½ χ²_S) dξ over right perturbations ξ of its best pose
-(:func:`posterior`): importance sampling with its Laplace covariance Σ_k = (Jᵀ J)⁻¹ (J the
-whitened residuals' Jacobian, Pose3 tangent order, rotation first) as the proposal, so a
-placement the contacts pin tightly holds less volume than a loose one at the same fit, and
-the facets' bounds count where the Laplace approximation would ignore them. The shares
+(:func:`posterior`): importance sampling, a pilot pass with its Laplace covariance
+Σ_k = (Jᵀ J)⁻¹ (J the whitened residuals' Jacobian, Pose3 tangent order, rotation first) as
+the proposal and a second with the pilot's own spread, so a placement the contacts pin
+tightly holds less volume than a loose one at the same fit, and the facets' bounds and a
+rough scan's broad valleys count where the Laplace approximation would ignore them. The shares
 p_k = Z_k / Σ Z are the placements' probabilities.
 
 The answer's confidence is the probability that its best pose is *strictly* right (rotation
@@ -25,6 +26,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg import solve_triangular
+from scipy.special import logsumexp
 
 from contactpose.costs.frame import object_frame
 from contactpose.costs.surface import SurfaceResiduals, land
@@ -35,6 +38,8 @@ from contactpose.scoring.evidence import prior_mahalanobis2
 
 #: Standard normal draws (6,) of the importance sampler (fixed: the same answer twice).
 MASS_DRAWS = 1024
+#: ... of which the first this many are the pilot pass that shapes the second's proposal.
+PILOT_DRAWS = 256
 #: The sampler's proposal is the Laplace covariance widened this many times (standard deviations).
 PROPOSAL_SCALE = 1.5
 #: Placements holding at least this share of the Laplace evidence are weighed by sampling.
@@ -86,33 +91,62 @@ def posterior(model, contacts, pose, facets, tolerance, covariance, chi2, others
     """(log evidence, strict mass) of one placement: the evidence log ∫ exp(-½ χ²_S) dξ over
     right perturbations ξ of ``pose`` (4, 4), and the share of it strictly alike ``center``
     (4, 4; None: ``pose`` itself, |ω| below 5° and |v|, the object origin's shift, below 5 %
-    of the diameter; else modulo ``symmetry``), by importance sampling with the
-    Laplace covariance (6, 6) widened PROPOSAL_SCALE times as the proposal (the contacts
-    landing from ``facets``, so the facets' bounds and neighbours count, which the Laplace
-    approximation misses). others : (K, 4, 4) the other placements' poses: a draw nearer
-    one of them than ``pose`` (modulo ``symmetry``, in units of the strict box) is theirs and
-    counts nothing here, so no mass is counted twice. prior : a PosePrior, whose density
-    (-½ its Mahalanobis distance²) joins the likelihood. Without a covariance (a pose
-    family): (-½ chi2, 0.0)."""
+    of the diameter; else modulo ``symmetry``), by importance sampling (the contacts landing
+    from ``facets``, so the facets' bounds and neighbours count, which the Laplace
+    approximation misses). A pilot of PILOT_DRAWS goes through the Laplace covariance (6, 6)
+    widened PROPOSAL_SCALE times, the rest of MASS_DRAWS through the pilot's weighted mean and
+    covariance widened alike plus the Laplace covariance (on a rough scan χ²_S is a broad
+    valley of small basins, and its local curvature alone makes the proposal too narrow);
+    every draw is weighed against the two proposals' mixture. others : (K, 4, 4) the other
+    placements' poses: a draw nearer one of them than ``pose`` (modulo ``symmetry``, in units
+    of the strict box) is theirs and counts nothing here, so no mass is counted twice. prior :
+    a PosePrior, whose density (-½ its Mahalanobis distance²) joins the likelihood. Without a
+    covariance (a pose family): (-½ chi2, 0.0)."""
     if covariance is None:
         return -0.5 * chi2, 0.0
-    L = PROPOSAL_SCALE * np.linalg.cholesky(0.5 * (covariance + covariance.T))
-    xi = _DRAWS @ L.T
+    laplace = 0.5 * (covariance + covariance.T)
+    args = (model, contacts, pose, facets, tolerance, others, symmetry, prior, center)
+    proposals = [(np.zeros(6), PROPOSAL_SCALE * np.linalg.cholesky(laplace))]
+    xi = proposals[0][0] + _DRAWS[:PILOT_DRAWS] @ proposals[0][1].T
+    log_t, inside = _log_target(*args, xi)
+    if np.isfinite(log_t).any():
+        w = np.exp(log_t - log_t.max())
+        w /= w.sum()
+        mean = w @ xi
+        spread = ((xi - mean) * w[:, None]).T @ (xi - mean)
+        proposals.append((mean, np.linalg.cholesky(PROPOSAL_SCALE**2 * 0.5 * (spread + spread.T) + laplace)))
+        more = mean + _DRAWS[PILOT_DRAWS:] @ proposals[1][1].T
+        t2, in2 = _log_target(*args, more)
+        xi, log_t, inside = np.concatenate([xi, more]), np.concatenate([log_t, t2]), np.concatenate([inside, in2])
+    if not np.isfinite(log_t).any():
+        return -np.inf, 0.0
+    share = np.array([PILOT_DRAWS, len(xi) - PILOT_DRAWS])[:len(proposals)] / len(xi)
+    log_q = logsumexp([np.log(f) + _log_normal(xi, m, L) for f, (m, L) in zip(share, proposals)], axis=0)
+    log_w = log_t - log_q
+    top = log_w.max()
+    w = np.exp(log_w - top)
+    return float(top + np.log(w.mean())), float(w[inside].sum() / w.sum())
+
+
+def _log_target(model, contacts, pose, facets, tolerance, others, symmetry, prior, center, xi):
+    """(log of exp(-½ χ²_S) times the prior's density, -inf where the draw is another
+    placement's (N,), whether each lies in the strict box (N,)) at right perturbations ξ
+    (N, 6) of ``pose``, as :func:`posterior` weighs them."""
     R, t = retract(np.repeat(pose[None, :3, :3], len(xi), axis=0), np.repeat(pose[None, :3, 3], len(xi), axis=0), xi)
     poses = np.zeros((len(xi), 4, 4))
     poses[:, :3, :3], poses[:, :3, 3], poses[:, 3, 3] = R, t, 1.0
     chi2_s = surface_chi2(model, contacts, poses, facets, tolerance)
     own = _nearest_is_own(poses, pose, others, symmetry, model.diameter)
-    log_w = np.where(np.isfinite(chi2_s) & own, -0.5 * (chi2_s + _prior_distance2(R, t, prior))
-                     + 0.5 * np.sum(_DRAWS**2, axis=1), -np.inf)
-    if not np.isfinite(log_w).any():
-        return -np.inf, 0.0
-    top = log_w.max()
-    w = np.exp(log_w - top)
-    log_z = top + np.log(w.mean()) + np.sum(np.log(np.diag(L))) + 3.0 * np.log(2.0 * np.pi)
+    log_t = np.where(np.isfinite(chi2_s) & own, -0.5 * (chi2_s + _prior_distance2(R, t, prior)), -np.inf)
     inside = (_inside_box(xi, model.diameter) if center is None
               else _box_distance(poses, center, symmetry, model.diameter) < 1.0)
-    return float(log_z), float(w[inside].sum() / w.sum())
+    return log_t, inside
+
+
+def _log_normal(xi, mean, L):
+    """(N,) log density of N(mean, L Lᵀ) (6-D, L lower triangular) at ξ (N, 6)."""
+    z = solve_triangular(L, (xi - mean).T, lower=True)
+    return -0.5 * np.sum(z**2, axis=0) - np.sum(np.log(np.diag(L))) - 3.0 * np.log(2.0 * np.pi)
 
 
 def _prior_distance2(R, t, prior):

@@ -192,4 +192,4 @@ def test_the_confidence_counts_every_placement_inside_the_best_box():
     to_best, to_other = (_box_distance(draws, P, group, model.diameter) for P in poses)
     assert w[(to_best < 1.0) & (to_other < to_best)].sum() > 0.05   # the other's draws hold part of the box
     assert found[0].probability == pytest.approx(w[to_best <= to_other].sum(), abs=0.03)
-    assert confidence == pytest.approx(w[to_best < 1.0].sum(), abs=0.03)
+    assert confidence == pytest.approx(w[to_best < 1.0].sum(), abs=0.05)   # the sampler: sd 0.017 over draw sets
