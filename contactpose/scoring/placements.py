@@ -37,7 +37,7 @@ from contactpose.scoring.classes import MAX_CLASS_HYPOTHESES
 from contactpose.scoring.evidence import prior_mahalanobis2
 
 #: Standard normal draws (6,) of the importance sampler (fixed: the same answer twice).
-MASS_DRAWS = 1024
+MASS_DRAWS = 768
 #: ... of which the first this many are the pilot pass that shapes the second's proposal.
 PILOT_DRAWS = 256
 #: The sampler's proposal is the Laplace covariance widened this many times (standard deviations).
