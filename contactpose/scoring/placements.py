@@ -26,8 +26,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import solve_triangular
-from scipy.special import logsumexp
+from scipy.stats import multivariate_normal
 
 from contactpose.costs.frame import object_frame
 from contactpose.costs.surface import SurfaceResiduals, land
@@ -106,23 +105,19 @@ def posterior(model, contacts, pose, facets, tolerance, covariance, chi2, others
         return -0.5 * chi2, 0.0
     laplace = 0.5 * (covariance + covariance.T)
     args = (model, contacts, pose, facets, tolerance, others, symmetry, prior, center)
-    proposals = [(np.zeros(6), PROPOSAL_SCALE * np.linalg.cholesky(laplace))]
-    xi = proposals[0][0] + _DRAWS[:PILOT_DRAWS] @ proposals[0][1].T
+    first = multivariate_normal(np.zeros(6), PROPOSAL_SCALE**2 * laplace)
+    xi = _DRAWS[:PILOT_DRAWS] @ (PROPOSAL_SCALE * np.linalg.cholesky(laplace)).T
     log_t, inside = _log_target(*args, xi)
-    if np.isfinite(log_t).any():
-        w = np.exp(log_t - log_t.max())
-        w /= w.sum()
-        mean = w @ xi
-        spread = ((xi - mean) * w[:, None]).T @ (xi - mean)
-        proposals.append((mean, np.linalg.cholesky(PROPOSAL_SCALE**2 * 0.5 * (spread + spread.T) + laplace)))
-        more = mean + _DRAWS[PILOT_DRAWS:] @ proposals[1][1].T
-        t2, in2 = _log_target(*args, more)
-        xi, log_t, inside = np.concatenate([xi, more]), np.concatenate([log_t, t2]), np.concatenate([inside, in2])
     if not np.isfinite(log_t).any():
         return -np.inf, 0.0
-    share = np.array([PILOT_DRAWS, len(xi) - PILOT_DRAWS])[:len(proposals)] / len(xi)
-    log_q = logsumexp([np.log(f) + _log_normal(xi, m, L) for f, (m, L) in zip(share, proposals)], axis=0)
-    log_w = log_t - log_q
+    w = np.exp(log_t - log_t.max())
+    mean = w @ xi / w.sum()
+    second = multivariate_normal(mean, PROPOSAL_SCALE**2 * np.cov(xi.T, aweights=w, bias=True) + laplace)
+    more = mean + _DRAWS[PILOT_DRAWS:] @ np.linalg.cholesky(second.cov).T
+    t2, in2 = _log_target(*args, more)
+    xi, log_t, inside = np.concatenate([xi, more]), np.concatenate([log_t, t2]), np.concatenate([inside, in2])
+    pilot = PILOT_DRAWS / len(xi)
+    log_w = log_t - np.logaddexp(np.log(pilot) + first.logpdf(xi), np.log(1.0 - pilot) + second.logpdf(xi))
     top = log_w.max()
     w = np.exp(log_w - top)
     return float(top + np.log(w.mean())), float(w[inside].sum() / w.sum())
@@ -141,12 +136,6 @@ def _log_target(model, contacts, pose, facets, tolerance, others, symmetry, prio
     inside = (_inside_box(xi, model.diameter) if center is None
               else _box_distance(poses, center, symmetry, model.diameter) < 1.0)
     return log_t, inside
-
-
-def _log_normal(xi, mean, L):
-    """(N,) log density of N(mean, L Lᵀ) (6-D, L lower triangular) at ξ (N, 6)."""
-    z = solve_triangular(L, (xi - mean).T, lower=True)
-    return -0.5 * np.sum(z**2, axis=0) - np.sum(np.log(np.diag(L))) - 3.0 * np.log(2.0 * np.pi)
 
 
 def _prior_distance2(R, t, prior):

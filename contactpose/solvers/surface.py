@@ -251,12 +251,6 @@ def multistart_ends(model, contacts, R, t, facets, tolerance):
         [surface_fit(model, contacts, pose[:3, :3], pose[:3, 3], start, tolerance) for pose, start in zip(starts, nearest)]
 
 
-def multistart_fit(model, contacts, R, t, facets, tolerance):
-    """The one of :func:`multistart_ends` of least χ²_S (the first on a tie)."""
-    ends = multistart_ends(model, contacts, R, t, facets, tolerance)
-    return ends[int(np.argmin([got[5] for got in ends]))]
-
-
 def _lowered(arrays, fits, tolerance):
     """Of fits [(row, surface_fit result)], those whose χ²_S (outlier penalty included) is below
     the row's χ², as :func:`surface_poses` returns them (:func:`_posed`)."""
