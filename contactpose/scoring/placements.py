@@ -26,7 +26,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import multivariate_normal
+from scipy.linalg import solve_triangular
 
 from contactpose.costs.frame import object_frame
 from contactpose.costs.surface import SurfaceResiduals, land
@@ -105,19 +105,20 @@ def posterior(model, contacts, pose, facets, tolerance, covariance, chi2, others
         return -0.5 * chi2, 0.0
     laplace = 0.5 * (covariance + covariance.T)
     args = (model, contacts, pose, facets, tolerance, others, symmetry, prior, center)
-    first = multivariate_normal(np.zeros(6), PROPOSAL_SCALE**2 * laplace)
-    xi = _DRAWS[:PILOT_DRAWS] @ (PROPOSAL_SCALE * np.linalg.cholesky(laplace)).T
+    first = PROPOSAL_SCALE * np.linalg.cholesky(laplace)
+    xi = _DRAWS[:PILOT_DRAWS] @ first.T
     log_t, inside = _log_target(*args, xi)
     if not np.isfinite(log_t).any():
         return -np.inf, 0.0
     w = np.exp(log_t - log_t.max())
     mean = w @ xi / w.sum()
-    second = multivariate_normal(mean, PROPOSAL_SCALE**2 * np.cov(xi.T, aweights=w, bias=True) + laplace)
-    more = mean + _DRAWS[PILOT_DRAWS:] @ np.linalg.cholesky(second.cov).T
+    second = np.linalg.cholesky(PROPOSAL_SCALE**2 * np.cov(xi.T, aweights=w, bias=True) + laplace)
+    more = mean + _DRAWS[PILOT_DRAWS:] @ second.T
     t2, in2 = _log_target(*args, more)
     xi, log_t, inside = np.concatenate([xi, more]), np.concatenate([log_t, t2]), np.concatenate([inside, in2])
     pilot = PILOT_DRAWS / len(xi)
-    log_w = log_t - np.logaddexp(np.log(pilot) + first.logpdf(xi), np.log(1.0 - pilot) + second.logpdf(xi))
+    log_w = log_t - np.logaddexp(np.log(pilot) + _log_normal(xi, np.zeros(6), first),
+                                 np.log(1.0 - pilot) + _log_normal(xi, mean, second))
     top = log_w.max()
     w = np.exp(log_w - top)
     return float(top + np.log(w.mean())), float(w[inside].sum() / w.sum())
@@ -136,6 +137,14 @@ def _log_target(model, contacts, pose, facets, tolerance, others, symmetry, prio
     inside = (_inside_box(xi, model.diameter) if center is None
               else _box_distance(poses, center, symmetry, model.diameter) < 1.0)
     return log_t, inside
+
+
+def _log_normal(xi, mean, L):
+    """(N,) log density of N(mean, L Lᵀ) at ξ (N, 6), L lower triangular: by the Cholesky factor,
+    since the covariance mixes radians² with lengths² (scipy.stats' eigenvalue cut-off calls it
+    singular for an object scaled by 1,000 or 0.001, tests/test_properties.py)."""
+    z = solve_triangular(L, (xi - mean).T, lower=True)
+    return -0.5 * np.sum(z**2, axis=0) - np.sum(np.log(np.diag(L))) - 3.0 * np.log(2.0 * np.pi)
 
 
 def _prior_distance2(R, t, prior):
