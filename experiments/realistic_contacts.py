@@ -420,11 +420,18 @@ def placement_columns(s, result, truth):
     """How sure the answer says it is, against the truth: its confidence (the probability
     that the best pose is strictly right), the best pose strictly right modulo the object's
     symmetry group (``strict_sym``), how many distinct placements it weighed, and whether one
-    of them is strictly right (``truth_listed``)."""
+    of them is strictly right (``truth_listed``); and each placement's χ², probability and
+    whether it is strictly right, space-separated in the placements' order
+    (``placement_chi2``, ``placement_probability``, ``placement_right``), so other weightings
+    of the same placements can be judged from the rows."""
     best = [] if result.best is None else [result.best.pose]
     listed = [p.pose for p in result.placements]
+    right = strict_modulo_symmetry(s, listed, truth)
     return {"confidence": result.confidence, "strict_sym": bool(strict_modulo_symmetry(s, best, truth).any()),
-            "placements": len(listed), "truth_listed": bool(strict_modulo_symmetry(s, listed, truth).any())}
+            "placements": len(listed), "truth_listed": bool(right.any()),
+            "placement_chi2": " ".join(f"{p.chi2:.4g}" for p in result.placements),
+            "placement_probability": " ".join(f"{p.probability:.4g}" for p in result.placements),
+            "placement_right": " ".join(str(int(x)) for x in right)}
 
 
 def strict_modulo_symmetry(s, poses, truth):
