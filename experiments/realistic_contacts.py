@@ -72,6 +72,10 @@ this run's)::
     python experiments/realistic_contacts.py --out results/_scratch/b --set 'methods=["chsel"]' --set seeds=20
     .venv/bin/python experiments/realistic_contacts.py --out results/_scratch/a --set "methods=$ALL" \
         --set 'merge_runs=["results/_scratch/b"]'
+
+``seeds`` is a count (grasps 0 .. seeds-1) or a list of grasp indices: ``--set
+'seeds=[15,16,17]'`` draws the grasps 15-17 of a longer run, the same draws, so a sample can
+be extended (into another ``--out``) without running its first grasps again.
 """
 
 from __future__ import annotations
@@ -561,7 +565,7 @@ def outside_peer(name, cache, cfg, s, contacts, free, truth, rng):
 def make_sweep(cfg, name, cache):
     fixed = {k: v for k, v in cfg.items() if k not in ("objects", "estimate", "keep_models", "workers", "merge_runs")}
     return sweep.Sweep(f"{NAME}:{stem(name)}", functools.partial(task, cfg=cfg, cache=str(cache)),
-                       {"object": [name], "radius_frac": cfg["radius_fracs"]}, seeds=cfg["seeds"],
+                       {"object": [name], "radius_frac": cfg["radius_fracs"]}, seeds=seed_list(cfg),
                        base_seed=cfg["base_seed"], seed_axes=("object",), config=fixed)
 
 
@@ -624,8 +628,8 @@ def expected_minutes(cfg, cache, workers):
     builds = sum(not (model_files(cache, n)["model"].exists() and current(model_files(cache, n)["model"]))
                  for n in cfg["objects"])
     run = [m for m in cfg["methods"] if m != "chsel" or chsel_peer.available()]
-    per_cell = sum(min(cfg["seeds"], cfg[GRASPS_KEY[m]]) * e["seconds"][m] for m in run)
-    per_cell += cfg["seeds"] * e["check_seconds"] if "fast" in run else 0.0
+    per_cell = sum(grasps_of(cfg, m) * e["seconds"][m] for m in run)
+    per_cell += len(seed_list(cfg)) * e["check_seconds"] if "fast" in run else 0.0
     work = len(cfg["objects"]) * len(cfg["radius_fracs"]) * per_cell
     return builds * e["build_minutes"], work / 60.0 / max(workers or 1, 1), builds
 
@@ -952,6 +956,19 @@ GRASPS_KEY = {"fast": "seeds", "fast-free": "seeds", "fast-samples": "seeds", "p
               "ss-published-timed": "published_grasps", "chsel": "chsel_grasps"}
 
 
+def seed_list(cfg):
+    """The grasp indices a run draws: ``seeds`` a count (0 .. seeds-1) or a list (say
+    ``list(range(15, 30))``, to extend a run of the first 15 without drawing them again)."""
+    seeds = cfg["seeds"]
+    return list(range(seeds)) if isinstance(seeds, int) else [int(s) for s in seeds]
+
+
+def grasps_of(cfg, method):
+    """How many of the run's grasps ``method`` runs on (the peers run on the first N grasps only)."""
+    key = GRASPS_KEY[method]
+    return len([s for s in seed_list(cfg) if key == "seeds" or s < cfg[key]])
+
+
 def methods_problem(cfg):
     """Why the config's ``methods`` cannot run (one line), or None. A run of some methods only
     (e.g. CHSEL in a pass of its own) draws the same grasps; every grasp needs some method."""
@@ -961,9 +978,15 @@ def methods_problem(cfg):
         return f"methods {methods!r}: expected a non-empty list of {', '.join(METHODS)}"
     if "ss-published-timed" in methods and "fast" not in methods:
         return "methods: ss-published-timed takes the time of the default method, so it needs \"fast\" too"
-    if max(cfg[GRASPS_KEY[m]] for m in methods) < cfg["seeds"]:
-        return (f"methods {methods!r} run on fewer grasps than seeds = {cfg['seeds']}: lower seeds to "
-                f"{max(cfg[GRASPS_KEY[m]] for m in methods)}")
+    seeds = cfg["seeds"]
+    if not (isinstance(seeds, int) and seeds > 0 or isinstance(seeds, list) and seeds
+            and all(isinstance(x, int) and x >= 0 for x in seeds) and len(set(seeds)) == len(seeds)):
+        return f"seeds {seeds!r}: expected a positive count or a list of distinct grasp indices >= 0"
+    most = max(grasps_of(cfg, m) for m in methods)
+    if most < len(seed_list(cfg)):
+        fix = (f"lower seeds to {most}" if isinstance(seeds, int)
+               else f"keep seeds below {max(cfg[GRASPS_KEY[m]] for m in methods)}")
+        return f"methods {methods!r} run on fewer grasps than seeds = {seeds}: {fix}"
     return None
 
 
@@ -1010,7 +1033,7 @@ def main(argv=None):
         stage_of = {n: out / "_scratch" / "sweeps" / stem(n) for n in cfg["objects"]}
         todo = [n for n, sw in sweeps.items() if args.fresh or not finished(sw, stage_of[n])]
         builds, sweeping, missing = expected_minutes({**cfg, "objects": todo}, cache, workers)
-        print(f"{NAME}: {len(cfg['objects'])} objects ({len(todo)} to run) x {len(cfg['radius_fracs'])} radii x {cfg['seeds']} grasps; "
+        print(f"{NAME}: {len(cfg['objects'])} objects ({len(todo)} to run) x {len(cfg['radius_fracs'])} radii x {len(seed_list(cfg))} grasps; "
               f"expected about {builds + sweeping:.0f} min ({missing} model builds, {builds:.0f} min, one at a time; "
               f"grasps {sweeping:.0f} min " + (f"on {workers} workers)" if workers else "in process)"), flush=True)
         start = time.perf_counter()

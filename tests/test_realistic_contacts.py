@@ -184,11 +184,29 @@ def test_a_run_of_some_methods_is_checked_before_it_starts(tmp_path, capsys):
     assert "lower seeds to 20" in rc.methods_problem({**cfg, "methods": ["chsel"]})
     assert "needs \"fast\"" in rc.methods_problem({**cfg, "methods": ["ss-published-timed"], "seeds": 20})
     assert "'icp'" in rc.methods_problem({**cfg, "methods": ["icp"]})
+    assert rc.methods_problem({**cfg, "methods": ["chsel"], "seeds": [3, 19]}) is None
+    assert "keep seeds below 20" in rc.methods_problem({**cfg, "methods": ["chsel"], "seeds": [3, 20]})
+    for bad in (0, [], [2, 2], [-1], [1.5], "5"):
+        assert "seeds" in rc.methods_problem({**cfg, "seeds": bad}), bad
     argv = ["--quick", "--out", str(tmp_path), "--set", 'methods=["chsel"]']
     assert rc.main(argv) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "lower seeds to 1" in err[0]
     assert not (tmp_path / "realistic_contacts" / "grasps.csv").exists()
+
+
+def test_a_list_of_seeds_draws_the_same_grasps_as_a_count():
+    """seeds=[3, 4] extends a run of seeds=3: its cells are the grasps 3 and 4 of seeds=5,
+    drawn from the same seed sequences."""
+    cfg = {"radius_fracs": [0.0, 0.02], "base_seed": 7}
+    def draws(seeds):
+        cells = rc.make_sweep({**cfg, "seeds": seeds}, "ycb:011_banana", "cache").cells()
+        return {(c.settings["radius_frac"], c.seed): c.seed_sequence(cfg["base_seed"], ("object",)).spawn_key
+                for c in cells}
+    some, all_five = draws([3, 4]), draws(5)
+    assert sorted({seed for _, seed in some}) == [3, 4]
+    assert some == {k: v for k, v in all_five.items() if k[1] >= 3}
+    assert rc.grasps_of({"seeds": [3, 4, 30], "paper_grasps": 20}, "paper") == 2
 
 
 def test_runs_over_the_same_grasps_merge_and_others_are_refused(tmp_path):
