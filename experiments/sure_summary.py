@@ -13,7 +13,9 @@ and writes beside the given rows:
   error, beside the one a perfectly calibrated confidence would show on the same answers
   (mean and 95th percentile: the binning's own noise); and, on the same grasps before, the ok share, its strict share and the strict share
   of all answers;
-* ``sure.md``: both as tables.
+* ``placements.csv`` (from runs with the ``placement_*`` columns): every weighed placement's
+  probability binned, against whether it is strictly right;
+* ``sure.md``: all as tables.
 
     python experiments/sure_summary.py results/sure/grasps.csv
 """
@@ -113,15 +115,28 @@ def main(argv=None):
            for rad in radii + ["all"]
            for lo, n, c, s in reliability([r for r in rows if rad in ("all", r["radius_frac"])])[0]]
     sweep.write_rows(out / "reliability.csv", rel)
-    (out / "sure.md").write_text(markdown(sure, rel))
+    every = [{"radius_frac": rad, "bin": f"{lo:.1f}", "count": n, "probability": c, "strict": s}
+             for rad in radii + ["all"]
+             for lo, n, c, s in binned(*placement_outcomes([r for r in rows if rad in ("all", r["radius_frac"])]))[0]]
+    if every:
+        sweep.write_rows(out / "placements.csv", every)
+    (out / "sure.md").write_text(markdown(sure, rel, every))
     return 0
+
+
+def placement_outcomes(rows):
+    """Every weighed placement's probability (P,) and whether it is strictly right (P,) 0/1,
+    from the rows' ``placement_probability`` and ``placement_right`` (empty without them)."""
+    pairs = [(float(p), float(y)) for r in rows if r.get("placement_probability")
+             for p, y in zip(r["placement_probability"].split(), r["placement_right"].split())]
+    return tuple(np.array(x, dtype=float) for x in zip(*pairs)) if pairs else (np.zeros(0), np.zeros(0))
 
 
 def pct(x):
     return "–" if x != x else f"{100 * x:.0f} %"
 
 
-def markdown(sure, rel):
+def markdown(sure, rel, every=()):
     lines = ["# How sure the default method is when it says ok", "",
              "From experiments/sure_summary.py over this folder's grasps.csv. ok: the best pose is strictly "
              "right (within 5° and 5 % of the diameter, modulo symmetry) with a confidence of at least 0.99. "
@@ -142,6 +157,13 @@ def markdown(sure, rel):
               "| r | confidence bin | answers | mean confidence | strictly right |", "|---|---|---:|---:|---:|"]
     lines += [f"| {r['radius_frac']} | {r['bin']} | {r['count']} | {r['confidence']:.3f} | {r['strict']:.3f} |"
               for r in rel]
+    if every:
+        lines += ["", "## Reliability of every placement's probability", "",
+                  "Each weighed placement (not only the best) binned by its probability, against whether it is "
+                  "strictly right (``placements.csv``). Two placements a few degrees apart can both be.", "",
+                  "| r | probability bin | placements | mean probability | strictly right |", "|---|---|---:|---:|---:|"]
+        lines += [f"| {r['radius_frac']} | {r['bin']} | {r['count']} | {r['probability']:.3f} | {r['strict']:.3f} |"
+                  for r in every]
     return "\n".join(lines) + "\n"
 
 

@@ -37,3 +37,13 @@ def test_a_confidence_that_is_wrong_lies_outside_the_calibrated_band():
     right = (np.arange(200) % 2).astype(float)
     assert ss.binned(conf, right)[1] == pytest.approx(0.4)
     assert ss.calibrated_ece(conf, np.random.default_rng(2))[1] < 0.1
+
+
+def test_every_placement_is_paired_with_its_own_outcome():
+    """Two rows' space-separated columns give each placement's probability and strictness, in order;
+    a row without them adds nothing."""
+    rows = [{"placement_probability": "0.7 0.3", "placement_right": "1 0"},
+            {"placement_probability": "1", "placement_right": "0"}, {"confidence": "0.5"}]
+    p, y = ss.placement_outcomes(rows)
+    assert p.tolist() == [0.7, 0.3, 1.0] and y.tolist() == [1.0, 0.0, 0.0]
+    assert [len(a) for a in ss.placement_outcomes(rows[2:])] == [0, 0]
