@@ -34,7 +34,7 @@ from contactpose.scoring import rank as ranking
 from contactpose.scoring.classes import MAX_CLASS_HYPOTHESES, distinct_poses, distinct_radius, pose_classes
 from contactpose.scoring.freespace import drop_blocked
 from contactpose.scoring.infacet import within_noise
-from contactpose.scoring.placements import placements
+from contactpose.scoring.placements import placements, strict_groups
 from contactpose.scoring.status import status as status_of
 from contactpose.search.grow import grow_tree, triple_test, warn_explosion
 from contactpose.search.tree import join_tuples
@@ -47,6 +47,11 @@ from contactpose.types import PoseFit
 
 #: When nothing matches, the pair tolerances are widened by these factors in turn.
 WIDEN_SCHEDULE = (1.5, 2.0)
+#: The surface hypotheses' placements beyond the best MULTISTART_ROWS fitted again from starts
+#: around them, at most (:func:`_unstarted_placements`).
+PLACEMENT_MULTISTARTS = 16
+#: ... of the hypotheses whose χ² is within this many times the fit threshold.
+PLACEMENT_REACH = 2.0
 #: The note of an answer from the search over facets, sharp edges and vertices (edge_hypotheses).
 EDGES_NOTE = ("no facet tuple fit the contacts' normals within noise: searched again over the facets, sharp edges "
               "and vertices (a fingertip on a sharp edge), the best poses fitted on the surface contact model")
@@ -377,7 +382,9 @@ def surface_hypotheses(model, contacts, arrays, tolerance, deadline, k=SURFACE_R
     residuals the contact model's; re-ranked, then one per distinct pose (:func:`distinct`).
     multistart : the best MULTISTART_ROWS of those then fitted again from starts around their
     poses too, where that lowers χ² (solvers.surface.multistart_poses), and the other ends
-    that fit within noise listed beside the distinct poses (:func:`_with_basins`). every : the
+    that fit within noise listed beside the distinct poses (:func:`_with_basins`); after the
+    grouping, so are the leaders of the other placements that fit (:func:`_unstarted_placements`),
+    while the deadline allows. every : the
     assignments before the distinct-pose grouping; when the best still does not fit within
     noise, its near-copies among them are fitted too (:func:`_refit_near_copies`)."""
     arrays = _moved(model, contacts, arrays, tolerance, surface_poses(model, contacts, arrays, tolerance, k))
@@ -388,7 +395,29 @@ def surface_hypotheses(model, contacts, arrays, tolerance, deadline, k=SURFACE_R
     if every is not None and len(arrays.cost) and arrays.chi2[0] > fit_threshold(contacts.n) and not deadline.passed:
         arrays = _refit_near_copies(model, contacts, arrays, every, tolerance)
     arrays = distinct(model, arrays, tolerance, deadline, merge_twins)
-    return arrays if basins is None else _with_basins(model, contacts, arrays, tolerance, basins)
+    if basins is None:
+        return arrays
+    leaders = _unstarted_placements(model, contacts, arrays)
+    if len(leaders) and not deadline.passed:
+        lowered, more = multistart_poses(model, contacts, arrays, tolerance, rows=leaders, deadline=deadline)
+        arrays = distinct(model, _moved(model, contacts, arrays, tolerance, lowered), tolerance, deadline, merge_twins)
+        arrays = _with_basins(model, contacts, arrays, tolerance, more)
+    return _with_basins(model, contacts, arrays, tolerance, basins)
+
+
+def _unstarted_placements(model, contacts, arrays):
+    """(m,) int: the rows leading the distinct placements (scoring.placements.strict_groups)
+    of the determined hypotheses within PLACEMENT_REACH times the fit threshold (a fit from
+    starts around them may drop within it), but for the best (whose multistart ran), at most
+    PLACEMENT_MULTISTARTS. A placement's own fit can stop in a
+    small basin far above its valley's floor on a rough scan (the apple, r = 5 %: a placement
+    0.9° from the truth at χ² 24.5, its multistart at 7.7 2.4° from it), and the placements'
+    evidence would then count it as all but impossible (research/sure.md)."""
+    fits = np.flatnonzero((arrays.chi2 <= PLACEMENT_REACH * fit_threshold(contacts.n)) & ~arrays.fit.underdetermined)
+    fits = fits[:MAX_CLASS_HYPOTHESES]
+    groups = strict_groups(arrays.poses[fits], symmetry(model), model.diameter, limit=1 + PLACEMENT_MULTISTARTS)
+    leaders = fits[[g[0] for g in groups]] if groups else fits
+    return leaders[leaders > 0][:PLACEMENT_MULTISTARTS]
 
 
 def _moved(model, contacts, arrays, tolerance, posed):

@@ -208,17 +208,20 @@ def _surface_starts(model, contacts, poses, facets, tolerance):
     return np.where(facets >= 0, nearest_fit_facets(model, contacts, poses, tolerance, surface=True), -1)
 
 
-def multistart_poses(model, contacts, arrays, tolerance, k=MULTISTART_ROWS):
-    """The best ``k`` determined hypotheses of the ranked arrays fitted on the surface from
-    each of :func:`multistart_starts` around their poses (:func:`multistart_ends`). Returns
+def multistart_poses(model, contacts, arrays, tolerance, k=MULTISTART_ROWS, rows=None, deadline=None):
+    """The best ``k`` determined hypotheses of the ranked arrays (or the given ``rows`` (m,)
+    int) fitted on the surface from each of :func:`multistart_starts` around their poses
+    (:func:`multistart_ends`), row by row until ``deadline`` (a progress.Deadline) passes. Returns
     (lowered, basins), each as :func:`surface_poses` returns: ``lowered``, each row moved to
     its end of least χ²_S where that (outlier penalty included) is below its χ²; ``basins``,
     the other ends that fit within noise (fit_threshold), each a pose of its own for the
     placements' evidence (research/sure.md, "Basins beside the best")."""
-    rows = np.flatnonzero(~arrays.fit.underdetermined)[:k]
+    rows = np.flatnonzero(~arrays.fit.underdetermined)[:k] if rows is None else rows
     least, basins = [], []
     limit = fit_threshold(contacts.n)
     for r in rows:
+        if deadline is not None and deadline.passed:
+            break
         ends = multistart_ends(model, contacts, arrays.fit.R[r], arrays.fit.t[r], arrays.facets[r], tolerance)
         best = int(np.argmin([got[5] for got in ends]))
         least.append((r, ends[best]))

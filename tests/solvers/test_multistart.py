@@ -12,13 +12,15 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from contactpose import Contacts, ObjectModel, localize
+from contactpose import Contacts, ObjectModel, localize, stages
 from contactpose.contacts import Tolerance
 from contactpose.costs.association import nearest_fit_facets
 from contactpose.costs.surface import surface_residuals
 from contactpose.geometry.metrics import rotation_error_deg
 from contactpose.geometry.sampling import perturb_normals
+from contactpose.model.symmetry import symmetry
 from contactpose.options import fit_threshold
+from contactpose.progress import Deadline
 from contactpose.sim import fingertip, objects
 from contactpose.sim import grasps as simulate
 from contactpose.solvers.surface import (
@@ -153,4 +155,48 @@ def test_the_basins_are_every_other_end_that_fits_within_noise(rock1k):
         assert np.allclose([c for _, c in got], [c for _, c in sorted(expected)], rtol=1e-9)
         assert sorted(rows.tolist()) == sorted(lowered)
         seen += len(got)
+    assert seen > 0
+
+
+def test_given_rows_are_fitted_from_their_starts_until_the_deadline(rock1k):
+    """multistart_poses(rows=...): the rows given, not the best ones, each moved to its least
+    end where that lowers its χ² (brute force as above); a passed deadline fits none."""
+    tolerance = Tolerance.from_noise(0.0025 * rock1k.diameter, 1.0)
+    contacts, _, _ = grasps(rock1k, 1, seed=23)[0]
+    arrays = localize(rock1k, contacts, position_noise=tolerance.position_noise, normal_noise_deg=1.0,
+                      surface=True, keep="all", diagnose=False).hypotheses.arrays
+    given = np.flatnonzero(~arrays.fit.underdetermined)[[2, 4]]
+    (rows, fit, _, _), _ = multistart_poses(rock1k, contacts, arrays, tolerance, rows=given)
+    lowered = []
+    for r in given:
+        R, t = arrays.fit.R[r], arrays.fit.t[r]
+        ends = [surface_fit(rock1k, contacts, R, t, arrays.facets[r], tolerance)] + \
+            [fit_from(rock1k, contacts, s, tolerance) for s in multistart_starts(R, t, rock1k.diameter)]
+        lowered += [r] if min(e[5] for e in ends) < arrays.chi2[r] else []
+    assert sorted(rows.tolist()) == sorted(lowered)
+    (rows, _, _, _), (brows, _, _, _) = multistart_poses(rock1k, contacts, arrays, tolerance, rows=given,
+                                                        deadline=Deadline(0.0))
+    assert len(rows) == 0 and len(brows) == 0
+
+
+def test_the_other_placements_leaders_are_the_first_of_each_strict_group(rock1k):
+    """stages._unstarted_placements against a pairwise brute force: of the determined rows
+    within PLACEMENT_REACH times the fit threshold, in rank order, each row that no earlier
+    leader is strictly alike (5°, 5 % of the diameter, modulo symmetry) leads; the best's
+    group is left out (its multistart ran)."""
+    tolerance = Tolerance.from_noise(0.0025 * rock1k.diameter, 1.0)
+    group = symmetry(rock1k)
+    seen = 0
+    for contacts, _, _ in grasps(rock1k, 4, seed=31):
+        arrays = localize(rock1k, contacts, position_noise=tolerance.position_noise, normal_noise_deg=1.0,
+                          surface=True, keep="all", diagnose=False).hypotheses.arrays
+        reach = stages.PLACEMENT_REACH * fit_threshold(contacts.n)
+        leaders = []
+        for r in np.flatnonzero((arrays.chi2 <= reach) & ~arrays.fit.underdetermined):
+            alike = [group.errors(arrays.poses[r][None], arrays.poses[k]) for k in leaders]
+            if not any(rot[0] < 5.0 and trans[0] < 0.05 * rock1k.diameter for rot, trans in alike):
+                leaders.append(r)
+        expected = [r for r in leaders if r > 0][:stages.PLACEMENT_MULTISTARTS]
+        assert stages._unstarted_placements(rock1k, contacts, arrays).tolist() == expected
+        seen += len(expected)
     assert seen > 0
