@@ -102,7 +102,8 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
     fits, research/surface.md), off on a facet table (coarse meshes, where it does not help);
     it costs 1.6 ms per fitted hypothesis, SURFACE_REFINE of them at most, and the best two are
     fitted again from 12 starts around each (solvers.surface.multistart_poses), whose other
-    ends that fit within noise are listed too, for the placements' evidence. The samples use the
+    ends that fit within noise are listed too, for the placements' evidence; so are the
+    leaders of up to 16 other placements, while time_limit allows (stages.surface_hypotheses). The samples use the
     surface contact model's posterior with ``surface`` or on a model of surface regions
     (``model.has_regions``), where the facet posterior is far too narrow (research/surface.md).
     keep : "fitting" lists, of the distinct poses, the best and those that fit the contacts
