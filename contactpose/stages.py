@@ -34,7 +34,7 @@ from contactpose.scoring import rank as ranking
 from contactpose.scoring.classes import MAX_CLASS_HYPOTHESES, distinct_poses, distinct_radius, pose_classes
 from contactpose.scoring.freespace import drop_blocked
 from contactpose.scoring.infacet import within_noise
-from contactpose.scoring.placements import placements, strict_groups
+from contactpose.scoring.placements import placements, strict_groups, strictly_alike
 from contactpose.scoring.status import status as status_of
 from contactpose.search.grow import grow_tree, triple_test, warn_explosion
 from contactpose.search.tree import join_tuples
@@ -47,8 +47,8 @@ from contactpose.types import PoseFit
 
 #: When nothing matches, the pair tolerances are widened by these factors in turn.
 WIDEN_SCHEDULE = (1.5, 2.0)
-#: The surface hypotheses' placements beyond the best MULTISTART_ROWS fitted again from starts
-#: around them, at most (:func:`_unstarted_placements`).
+#: The surface hypotheses' placements beyond the best fitted again from starts around them, at
+#: most (:func:`_placements_started`).
 PLACEMENT_MULTISTARTS = 16
 #: ... of the hypotheses whose χ² is within this many times the fit threshold.
 PLACEMENT_REACH = 2.0
@@ -383,7 +383,7 @@ def surface_hypotheses(model, contacts, arrays, tolerance, deadline, k=SURFACE_R
     multistart : the best MULTISTART_ROWS of those then fitted again from starts around their
     poses too, where that lowers χ² (solvers.surface.multistart_poses), and the other ends
     that fit within noise listed beside the distinct poses (:func:`_with_basins`); after the
-    grouping, so are the leaders of the other placements that fit (:func:`_unstarted_placements`),
+    grouping, so are the leaders of the other placements that fit (:func:`_placements_started`),
     while the deadline allows. every : the
     assignments before the distinct-pose grouping; when the best still does not fit within
     noise, its near-copies among them are fitted too (:func:`_refit_near_copies`)."""
@@ -397,27 +397,45 @@ def surface_hypotheses(model, contacts, arrays, tolerance, deadline, k=SURFACE_R
     arrays = distinct(model, arrays, tolerance, deadline, merge_twins)
     if basins is None:
         return arrays
-    leaders = _unstarted_placements(model, contacts, arrays)
-    if len(leaders) and not deadline.passed:
-        lowered, more = multistart_poses(model, contacts, arrays, tolerance, rows=leaders, deadline=deadline)
-        arrays = distinct(model, _moved(model, contacts, arrays, tolerance, lowered), tolerance, deadline, merge_twins)
-        arrays = _with_basins(model, contacts, arrays, tolerance, more)
-    return _with_basins(model, contacts, arrays, tolerance, basins)
+    return _placements_started(model, contacts, _with_basins(model, contacts, arrays, tolerance, basins), tolerance,
+                               deadline)
 
 
-def _unstarted_placements(model, contacts, arrays):
+def _placements_started(model, contacts, arrays, tolerance, deadline):
+    """The ranked hypotheses with every placement that fits (:func:`_unstarted_placements`)
+    fitted again from starts around its leader (solvers.surface.multistart_poses): its row
+    moved to the least end where that lowers its χ², the other ends that fit within noise
+    listed beside (:func:`_with_basins`). Rounds run while new placements appear (an end
+    can be one), up to PLACEMENT_MULTISTARTS leaders in all and while the deadline allows.
+    A placement's own fit can stop in a small basin far above its valley's floor on a rough
+    scan (the apple, r = 5 %: a placement 0.9° from the truth at χ² 24.5, its multistart at
+    7.7 2.4° from it; the hammer, r = 1 %: an end 2° from the truth at χ² 21.6, its own
+    multistart at 2.7, below the best's 9.1), and the placements' evidence would then count
+    it as all but impossible (research/sure.md)."""
+    started, left = arrays.poses[:1], PLACEMENT_MULTISTARTS  # the best's multistart ran
+    while left > 0 and len(arrays.cost) and not deadline.passed:
+        rows = _unstarted_placements(model, contacts, arrays, started)[:left]
+        if not len(rows):
+            break
+        lowered, more = multistart_poses(model, contacts, arrays, tolerance, rows=rows, deadline=deadline)
+        started, left = np.concatenate([started, arrays.poses[rows]]), left - len(rows)
+        arrays = _with_basins(model, contacts, _moved(model, contacts, arrays, tolerance, lowered), tolerance, more)
+    return arrays
+
+
+def _unstarted_placements(model, contacts, arrays, started):
     """(m,) int: the rows leading the distinct placements (scoring.placements.strict_groups)
     of the determined hypotheses within PLACEMENT_REACH times the fit threshold (a fit from
-    starts around them may drop within it), but for the best (whose multistart ran), at most
-    PLACEMENT_MULTISTARTS. A placement's own fit can stop in a
-    small basin far above its valley's floor on a rough scan (the apple, r = 5 %: a placement
-    0.9° from the truth at χ² 24.5, its multistart at 7.7 2.4° from it), and the placements'
-    evidence would then count it as all but impossible (research/sure.md)."""
+    starts around them may drop within it), but for those strictly alike a pose of
+    ``started`` (K, 4, 4), whose multistart ran."""
     fits = np.flatnonzero((arrays.chi2 <= PLACEMENT_REACH * fit_threshold(contacts.n)) & ~arrays.fit.underdetermined)
     fits = fits[:MAX_CLASS_HYPOTHESES]
-    groups = strict_groups(arrays.poses[fits], symmetry(model), model.diameter, limit=1 + PLACEMENT_MULTISTARTS)
-    leaders = fits[[g[0] for g in groups]] if groups else fits
-    return leaders[leaders > 0][:PLACEMENT_MULTISTARTS]
+    group = symmetry(model)
+    leaders = fits[[g[0] for g in strict_groups(arrays.poses[fits], group, model.diameter)]] if len(fits) else fits
+    fresh = np.ones(len(leaders), dtype=bool)
+    for pose in started:
+        fresh &= ~strictly_alike(arrays.poses[leaders], pose, group, model.diameter)
+    return leaders[fresh]
 
 
 def _moved(model, contacts, arrays, tolerance, posed):

@@ -53,7 +53,7 @@ SINGULAR_RATIO = 1e-12
 _DRAWS = np.random.default_rng(0).standard_normal((MASS_DRAWS, 6))
 
 __all__ = ["MAX_PLACEMENTS", "Placement", "laplace_covariance", "laplace_log_evidence", "placements", "posterior",
-           "strict_groups", "surface_chi2"]
+           "strict_groups", "strictly_alike", "surface_chi2"]
 
 
 def laplace_covariance(model, contacts, pose, facets, tolerance, prior=None):
@@ -195,6 +195,13 @@ class Placement:
                 "covariance": None if self.covariance is None else self.covariance.tolist()}
 
 
+def strictly_alike(poses, pose, symmetry, diameter):
+    """(N,) bool: each of poses (N, 4, 4) within 5° and 5 % of the diameter of ``pose`` (4, 4)
+    modulo ``symmetry`` (model.symmetry.Symmetry): one placement."""
+    rot, trans = symmetry.errors(poses, pose)
+    return (rot < SUCCESS_ROT_DEG) & (trans < SUCCESS_TRANS_FRAC * diameter)
+
+
 def strict_groups(poses, symmetry, diameter, limit=MAX_PLACEMENTS):
     """Greedy grouping of ranked poses (H, 4, 4), best first: each pose not yet taken leads
     and takes every later one strictly alike modulo ``symmetry`` (model.symmetry.Symmetry),
@@ -204,8 +211,7 @@ def strict_groups(poses, symmetry, diameter, limit=MAX_PLACEMENTS):
     while free.any() and len(groups) < limit:
         lead = int(np.flatnonzero(free)[0])
         rows = np.flatnonzero(free)
-        rot, trans = symmetry.errors(poses[rows], poses[lead])
-        members = rows[(rot < SUCCESS_ROT_DEG) & (trans < SUCCESS_TRANS_FRAC * diameter)]
+        members = rows[strictly_alike(poses[rows], poses[lead], symmetry, diameter)]
         members = np.union1d(members, [lead])
         free[members] = False
         groups.append(members)

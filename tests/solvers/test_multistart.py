@@ -182,21 +182,52 @@ def test_given_rows_are_fitted_from_their_starts_until_the_deadline(rock1k):
 def test_the_other_placements_leaders_are_the_first_of_each_strict_group(rock1k):
     """stages._unstarted_placements against a pairwise brute force: of the determined rows
     within PLACEMENT_REACH times the fit threshold, in rank order, each row that no earlier
-    leader is strictly alike (5°, 5 % of the diameter, modulo symmetry) leads; the best's
-    group is left out (its multistart ran)."""
+    leader is strictly alike (5°, 5 % of the diameter, modulo symmetry) leads; the leaders
+    strictly alike a started pose are left out (the best's, and then the second's too)."""
     tolerance = Tolerance.from_noise(0.0025 * rock1k.diameter, 1.0)
     group = symmetry(rock1k)
     seen = 0
+    alike = (lambda a, b: (lambda rot, trans: rot[0] < 5.0 and trans[0] < 0.05 * rock1k.diameter)(
+        *group.errors(a[None], b)))
     for contacts, _, _ in grasps(rock1k, 4, seed=31):
         arrays = localize(rock1k, contacts, position_noise=tolerance.position_noise, normal_noise_deg=1.0,
                           surface=True, keep="all", diagnose=False).hypotheses.arrays
         reach = stages.PLACEMENT_REACH * fit_threshold(contacts.n)
         leaders = []
         for r in np.flatnonzero((arrays.chi2 <= reach) & ~arrays.fit.underdetermined):
-            alike = [group.errors(arrays.poses[r][None], arrays.poses[k]) for k in leaders]
-            if not any(rot[0] < 5.0 and trans[0] < 0.05 * rock1k.diameter for rot, trans in alike):
+            if not any(alike(arrays.poses[r], arrays.poses[k]) for k in leaders):
                 leaders.append(r)
-        expected = [r for r in leaders if r > 0][:stages.PLACEMENT_MULTISTARTS]
-        assert stages._unstarted_placements(rock1k, contacts, arrays).tolist() == expected
-        seen += len(expected)
+        for started in (arrays.poses[:1], arrays.poses[leaders[:2]]):
+            expected = [r for r in leaders if not any(alike(arrays.poses[r], p) for p in started)]
+            assert stages._unstarted_placements(rock1k, contacts, arrays, started).tolist() == expected
+            seen += len(expected)
+    assert seen > 0
+
+
+def test_the_placements_ends_are_kept_and_the_deadline_stops_them(rock1k):
+    """stages._placements_started against brute force: for each leader of the first round
+    (every placement but the best's), the least end of its own multistart is among the
+    result's rows (a row strictly alike it, χ² no higher); the best χ² never rises; a passed
+    deadline returns the hypotheses as they were."""
+    tolerance = Tolerance.from_noise(0.0025 * rock1k.diameter, 1.0)
+    group = symmetry(rock1k)
+    seen = 0
+    for contacts, _, _ in grasps(rock1k, 3, seed=41):
+        arrays = localize(rock1k, contacts, position_noise=tolerance.position_noise, normal_noise_deg=1.0,
+                          surface=True, keep="all", diagnose=False).hypotheses.arrays
+        assert stages._placements_started(rock1k, contacts, arrays, tolerance, Deadline(0.0)) is arrays
+        out = stages._placements_started(rock1k, contacts, arrays, tolerance, Deadline(None))
+        assert out.chi2[0] <= arrays.chi2[0] + 1e-9
+        first = stages._unstarted_placements(rock1k, contacts, arrays, arrays.poses[:1])[:stages.PLACEMENT_MULTISTARTS]
+        for r in first:
+            end = least(multistart_ends(rock1k, contacts, arrays.fit.R[r], arrays.fit.t[r], arrays.facets[r],
+                                        tolerance))
+            if end[5] >= arrays.chi2[r]:
+                continue  # the row stays as it was
+            pose = np.eye(4)
+            pose[:3, :3], pose[:3, 3] = end[0], end[1]
+            rot, trans = group.errors(out.poses, pose)
+            near = (rot < 5.0) & (trans < 0.05 * rock1k.diameter)
+            assert near.any() and out.chi2[near].min() <= end[5] + 1e-6
+            seen += 1
     assert seen > 0
