@@ -1033,7 +1033,8 @@ def main(argv=None):
         stage_of = {n: out / "_scratch" / "sweeps" / stem(n) for n in cfg["objects"]}
         todo = [n for n, sw in sweeps.items() if args.fresh or not finished(sw, stage_of[n])]
         builds, sweeping, missing = expected_minutes({**cfg, "objects": todo}, cache, workers)
-        print(f"{NAME}: {len(cfg['objects'])} objects ({len(todo)} to run) x {len(cfg['radius_fracs'])} radii x {len(seed_list(cfg))} grasps; "
+        print(f"{NAME}: {len(cfg['objects'])} objects ({len(todo)} to run) x {len(cfg['radius_fracs'])} radii x "
+              f"{len(seed_list(cfg))} grasps; "
               f"expected about {builds + sweeping:.0f} min ({missing} model builds, {builds:.0f} min, one at a time; "
               f"grasps {sweeping:.0f} min " + (f"on {workers} workers)" if workers else "in process)"), flush=True)
         start = time.perf_counter()

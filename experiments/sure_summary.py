@@ -151,7 +151,8 @@ def markdown(sure, rel, every=()):
     for s in sure:
         lines.append(f"| {s['object'].replace('ycb:', '')} | {float(s['radius_frac']):g} | {s['grasps']} | {pct(s['ok'])} | "
                      f"{pct(s['ok_strict'])} | {pct(s['ambiguous_truth_listed'])} ({s['ambiguous_n']}) | "
-                     f"{s['ece']:.3f} | {s['ece_calibrated']:.3f} ({s['ece_calibrated_95']:.3f}) | {pct(s['strict'])} | {pct(s['before_ok'])} | {pct(s['before_ok_strict'])} | "
+                     f"{s['ece']:.3f} | {s['ece_calibrated']:.3f} ({s['ece_calibrated_95']:.3f}) | {pct(s['strict'])} | "
+                     f"{pct(s['before_ok'])} | {pct(s['before_ok_strict'])} | "
                      f"{pct(s['before_strict'])} |")
     lines += ["", "## Reliability of the confidence", "",
               "| r | confidence bin | answers | mean confidence | strictly right |", "|---|---|---:|---:|---:|"]
