@@ -100,6 +100,7 @@ from contactpose.geometry import metrics
 from contactpose.geometry.raycast import raycaster
 from contactpose.geometry.sampling import perturb_normals
 from contactpose.harness import sweep
+from contactpose.harness.ceiling import truth_share
 from contactpose.io.modelfile import FORMAT_VERSION
 from contactpose.localize import DEFAULT_TIME_LIMIT, localize
 from contactpose.localize import warm_up as warm_localize
@@ -427,11 +428,15 @@ def placement_columns(s, result, truth):
     of them is strictly right (``truth_listed``); and each placement's χ², probability and
     whether it is strictly right, space-separated in the placements' order
     (``placement_chi2``, ``placement_probability``, ``placement_right``), so other weightings
-    of the same placements can be judged from the rows."""
+    of the same placements can be judged from the rows; and the share the truth would hold
+    had the search found it at its own floor (``truth_share``, harness.ceiling.truth_share,
+    with the truth's own χ²_S, ``truth_chi2``; empty for the paper's method)."""
     best = [] if result.best is None else [result.best.pose]
     listed = [p.pose for p in result.placements]
     right = strict_modulo_symmetry(s, listed, truth)
-    return {"confidence": result.confidence, "strict_sym": bool(strict_modulo_symmetry(s, best, truth).any()),
+    oracle = ("", "") if result.confidence is None else truth_share(s.model, result.contacts, result, truth, s.group)
+    return {"truth_share": oracle[0], "truth_chi2": oracle[1],
+            "confidence": result.confidence, "strict_sym": bool(strict_modulo_symmetry(s, best, truth).any()),
             "placements": len(listed), "truth_listed": bool(right.any()),
             "placement_chi2": " ".join(f"{p.chi2:.4g}" for p in result.placements),
             "placement_probability": " ".join(f"{p.probability:.4g}" for p in result.placements),

@@ -11,8 +11,11 @@ and writes beside the given rows:
 * ``sure.csv``: per object and radius (and pooled per radius): grasps, ok share and the ok
   answers strictly right; ambiguous answers that list the truth; the expected calibration
   error, beside the one a perfectly calibrated confidence would show on the same answers
-  (mean and 95th percentile: the binning's own noise); and, on the same grasps before, the ok share, its strict share and the strict share
-  of all answers;
+  (mean and 95th percentile: the binning's own noise); the share of grasps where the truth
+  would hold at least the ok threshold of the evidence had the search found it at its own
+  floor (``ok_reachable``, from the ``truth_share`` column: what a calibrated ok can reach);
+  and, on the same grasps before, the ok share, its strict share and the strict share of all
+  answers;
 * ``placements.csv`` (from runs with the ``placement_*`` columns): every weighed placement's
   probability binned, against whether it is strictly right;
 * ``sure.md``: all as tables.
@@ -28,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from contactpose.harness import sweep
+from contactpose.options import OK_PROBABILITY
 
 ROOT = Path(__file__).resolve().parents[1]
 BEFORE = ROOT / "results" / "realistic_contacts" / "grasps.csv"
@@ -91,6 +95,8 @@ def cell(rows, before):
             **dict(zip(("ece_calibrated", "ece_calibrated_95"),
                        calibrated_ece([confidence(r) for r in rows], np.random.default_rng(0)) if rows
                        else (float("nan"), float("nan")))),
+            "ok_reachable": share(rows, lambda r: float(r.get("truth_share") or "nan") >= OK_PROBABILITY)
+            if rows and rows[0].get("truth_share") else float("nan"),
             "before_ok": share(before, lambda r: r["status"] == "ok"),
             "before_ok_strict": share([r for r in before if r["status"] == "ok"], lambda r: flag(r, "top1_strict")),
             "before_strict": share(before, lambda r: flag(r, "top1_strict"))}
@@ -145,12 +151,15 @@ def markdown(sure, rel, every=()):
              "ECE, calibrated: the ECE a perfectly calibrated confidence would show on the same answers (each "
              "right with its own confidence; mean and 95th percentile of 400 draws): the binning of a few hundred "
              "answers alone gives about 0.05.", "",
-             "| object | r | grasps | ok | ok strictly right | ambiguous: truth listed | ECE | ECE, calibrated (95 %) | "
-             "strict (all) | before: ok | before: ok strictly right | before: strict |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "ok reachable: the share of grasps where the truth would hold at least 0.99 of the Laplace evidence "
+             "had the search found it at its own floor, beside the placements the answer weighed "
+             "(harness.ceiling.truth_share): what a calibrated ok can reach on these grasps.", "",
+             "| object | r | grasps | ok | ok reachable | ok strictly right | ambiguous: truth listed | ECE | "
+             "ECE, calibrated (95 %) | strict (all) | before: ok | before: ok strictly right | before: strict |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for s in sure:
         lines.append(f"| {s['object'].replace('ycb:', '')} | {float(s['radius_frac']):g} | {s['grasps']} | {pct(s['ok'])} | "
-                     f"{pct(s['ok_strict'])} | {pct(s['ambiguous_truth_listed'])} ({s['ambiguous_n']}) | "
+                     f"{pct(s['ok_reachable'])} | {pct(s['ok_strict'])} | {pct(s['ambiguous_truth_listed'])} ({s['ambiguous_n']}) | "
                      f"{s['ece']:.3f} | {s['ece_calibrated']:.3f} ({s['ece_calibrated_95']:.3f}) | {pct(s['strict'])} | "
                      f"{pct(s['before_ok'])} | {pct(s['before_ok_strict'])} | "
                      f"{pct(s['before_strict'])} |")

@@ -7,7 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from contactpose.harness.ceiling import placement_fits, posteriors
+from contactpose.harness.ceiling import placement_fits, posteriors, truth_share
+from contactpose.localize import localize
 from contactpose.model.symmetry import Symmetry, symmetry
 from contactpose.sim import grasps as simulate
 from contactpose.sim.objects import make_box
@@ -91,3 +92,30 @@ def test_a_shifted_truth_is_not_the_true_placement(box_model):
     fits = placement_fits(box_model, g.contacts, shifted, **NOISE)
     assert fits.drifted and not fits.best_right and fits.wrong_fits_better
     assert fits.true_chi2 > 1e4 and fits.posterior[0] < 1e-6
+
+
+@pytest.mark.parametrize("seed", [0, 1, 7])
+def test_the_truth_share_is_one_over_the_placements_that_fit(box_model, seed):
+    """Noise-free contacts on a box: every placement the brute force counts fits exactly and
+    is as wide (a turn of the box), so modulo its four rotations the truth holds 4 / count of
+    the evidence, whether the answer lists the truth or the search had missed it (its own
+    fit from the true pose joins the placements)."""
+    g = box_grasp(box_model, seed)
+    expected = 4.0 / exact_placements(g.contacts, g.pose[:3, :3])
+    result = localize(box_model, g.contacts, **NOISE)
+    assert truth_share(box_model, g.contacts, result, g.pose)[0] == pytest.approx(expected, abs=1e-6)
+    group = symmetry(box_model)
+    missed = [p for p in result.placements if group.errors(p.pose, g.pose)[0] > 5.0]
+    assert len(missed) == len(result.placements) - 1
+    result.placements = missed
+    share, chi2 = truth_share(box_model, g.contacts, result, g.pose)
+    assert share == pytest.approx(expected, abs=1e-6) and chi2 < 1e-8
+
+
+def test_a_shifted_truth_holds_no_share(box_model):
+    g = box_grasp(box_model, 2)
+    shifted = g.pose.copy()
+    shifted[:3, 3] += 0.1 * box_model.diameter * np.array([0.0, 0.0, 1.0])
+    result = localize(box_model, g.contacts, **NOISE)
+    share, chi2 = truth_share(box_model, g.contacts, result, shifted)
+    assert share < 1e-6 and chi2 > 1e4

@@ -30,6 +30,7 @@ from contactpose.costs.surface import surface_residuals
 from contactpose.geometry.metrics import SUCCESS_ROT_DEG, SUCCESS_TRANS_FRAC
 from contactpose.localize import localize
 from contactpose.model.symmetry import symmetry
+from contactpose.scoring.placements import Placement, laplace_covariance, laplace_log_evidence
 from contactpose.solvers.surface import surface_fit
 
 #: The search's best distinct poses fitted on the surface (placement_fits).
@@ -37,7 +38,7 @@ CHECKS = 32
 #: χ² within this of the true placement's count as fitting as well (ties, wrong_fits_better).
 TIE_CHI2 = 1e-6
 
-__all__ = ["CHECKS", "PlacementFits", "placement_fits", "posteriors"]
+__all__ = ["CHECKS", "PlacementFits", "placement_fits", "posteriors", "truth_share"]
 
 
 @dataclass(frozen=True)
@@ -92,7 +93,7 @@ def placement_fits(model, contacts, true_pose, *, group=None, checks=CHECKS, **o
     group = symmetry(model) if group is None else group
     result = localize(model, contacts, keep="all", twins=True, diagnose=False, **options)
     tolerance, D = result.tolerance, model.diameter
-    true_chi2, drifted = _true_chi2(model, contacts, true_pose, tolerance, group)
+    _, _, true_chi2, drifted = _true_fit(model, contacts, true_pose, tolerance, group)
     arrays = result.hypotheses.arrays
     wrong_poses, wrong_chi2 = [], []
     for k in range(min(checks, len(arrays.cost))):
@@ -111,18 +112,41 @@ def placement_fits(model, contacts, true_pose, *, group=None, checks=CHECKS, **o
                          drifted)
 
 
-def _true_chi2(model, contacts, true_pose, tolerance, group):
-    """χ²_S of the surface fit from the true pose, each contact walking from its facet of
-    least surface cost, or, when that fit leaves the true placement, χ²_S at the true pose.
-    -> (χ², drifted)"""
+def truth_share(model, contacts, result, true_pose, group=None):
+    """The share of the Laplace evidence (scoring.placements.laplace_log_evidence) the true
+    placement would hold among a ``localize`` Result's placements had the search found it at
+    its own floor: its surface fit from the true pose (:func:`placement_fits`' true placement)
+    joins the placements strictly right of the truth, the better evidence counting. What the
+    answer's placement probability could be with a search that misses nothing it did not
+    miss: the share of grasps where this reaches 0.99 bounds the ok share a calibrated
+    confidence can give at that threshold. group : the symmetry (default ``symmetry(model)``).
+    -> (share in [0, 1], the truth's own χ²_S)"""
+    group = symmetry(model) if group is None else group
+    pose, facets, chi2, _ = _true_fit(model, contacts, true_pose, result.tolerance, group)
+    truth = Placement(-1, np.zeros(0, dtype=np.int64), pose, chi2,
+                      laplace_covariance(model, contacts, pose, facets, result.tolerance), 0.0)
+    listed = result.placements
+    right = [_right(group, p.pose, true_pose, model.diameter) for p in listed]
+    log_z = laplace_log_evidence([truth] + [p for p, r in zip(listed, right) if r]
+                                 + [p for p, r in zip(listed, right) if not r])
+    own, wrong = np.max(log_z[:1 + sum(right)]), log_z[1 + sum(right):]
+    total = np.logaddexp.reduce(np.append(wrong, own))
+    return (float(np.exp(own - total)) if np.isfinite(own) else 0.0), chi2
+
+
+def _true_fit(model, contacts, true_pose, tolerance, group):
+    """The surface fit from the true pose, each contact walking from its facet of least
+    surface cost, or, when that fit leaves the true placement, the true pose itself.
+    -> (pose (4, 4), facets (n,), χ²_S, drifted)"""
     start = nearest_fit_facets(model, contacts, true_pose, tolerance, surface=True)
     R, t = true_pose[:3, :3], true_pose[:3, 3]
     fitted = surface_fit(model, contacts, R, t, start, tolerance)
     pose = np.eye(4)
     pose[:3, :3], pose[:3, 3] = fitted[0], fitted[1]
     if _right(group, pose, true_pose, model.diameter):
-        return fitted[5], False
-    return float(np.sum(surface_residuals(model, contacts, R, t, start, tolerance) ** 2)), True
+        return pose, fitted[2], float(fitted[5]), False
+    return (np.array(true_pose, dtype=np.float64), start,
+            float(np.sum(surface_residuals(model, contacts, R, t, start, tolerance) ** 2)), True)
 
 
 def _right(group, pose, true_pose, diameter):
