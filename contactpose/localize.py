@@ -195,10 +195,19 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
             arrays, rescue = stages.refine_hypotheses(model, contacts, arrays, tolerance, prior=prior, robust=robust,
                                                       k=refine)
         notes += (rescue,)
+    classify = (lambda a: stages.classify(model, contacts, a, tolerance, bound=fast, deadline=deadline, notes=notes,
+                                          ok_probability=ok_probability if fast else None, prior=prior))
     with _clock(timing, "rank"):
-        classes, status, hint, found, confidence = stages.classify(
-            model, contacts, arrays, tolerance, bound=fast, deadline=deadline, notes=notes,
-            ok_probability=ok_probability if fast else None, prior=prior)
+        classes, status, hint, found, confidence = classify(arrays)
+    if status == "ok" and fast and distinct and search == "auto" and solver == "closed-form" and model.has_regions:
+        arrays = stages.checked_by_samples(model, contacts, arrays, tolerance, timing, finger_radius=finger_radius,
+                                           merge_twins=merge_twins, deadline=deadline)  # own clock
+        if free_space is not None:
+            with _clock(timing, "free_space"):
+                arrays = drop_intersecting(model, contacts, arrays, free_space, tolerance)[0]
+        with _clock(timing, "rank"):
+            classes, status, hint, found, confidence = classify(arrays)
+    with _clock(timing, "rank"):
         num = len(arrays.cost)
         if keep == "fitting" and fast and distinct and status != "time_limit":
             arrays, classes, found = stages.listed(arrays, classes, found)

@@ -93,7 +93,7 @@ CLOSEST_FACET_ROUNDS = 2
 #: The search's stage times, in seconds, as every Result's timing starts.
 SEARCH_STAGES = ("pairs", "tree", "pose", "rank")
 
-__all__ = ["POOR_FIT_LISTED", "SEARCH_STAGES", "classify", "distinct", "find_hypotheses",
+__all__ = ["POOR_FIT_LISTED", "SEARCH_STAGES", "checked_by_samples", "classify", "distinct", "find_hypotheses",
            "join_hypotheses", "listed", "listed_rows", "polish_hypotheses", "pose_hypotheses", "rank_hypotheses",
            "refine_hypotheses", "search", "surface_hypotheses", "edge_hypotheses", "verified_hypotheses",
            "with_widened_normals"]
@@ -180,6 +180,29 @@ def verified_hypotheses(model, contacts, tolerance, *, deadline=None):
     arrays = _first_of_each_tuple(rounds[0].merged(*rounds[1:]))
     return arrays, {"pairs": 0.0, "tree": searched - start, "pose": done - searched,
                     "rank": time.perf_counter() - done}
+
+
+def checked_by_samples(model, contacts, arrays, tolerance, timing, *, finger_radius=None, merge_twins=False,
+                       deadline=None):
+    """The ranked hypotheses of an answer about to say "ok", joined by those of the search by
+    hypothesize and verify (:func:`verified_hypotheses`), fitted on the surface as that
+    search's are, one per distinct pose; its seconds are added to ``timing`` ("tree": the
+    candidates; "pose": the rest). Where a rounded fingertip rests at an edge or a vertex of a
+    rough scan, the table and the tree can lose the true placement while a wrong one fits
+    within noise, and nothing in the answer tells; a search that shares no stage with them
+    finds it in most of those grasps (research/sure.md, "A second search before ok").
+    -> HypothesisArrays ranked"""
+    deadline = deadline or Deadline()
+    found, more = verified_hypotheses(model, contacts, tolerance, deadline=deadline)
+    start = time.perf_counter()
+    if finger_radius is not None:
+        found = drop_blocked(model, contacts, found, finger_radius)
+    found = surface_hypotheses(model, contacts, found, tolerance, deadline, VERIFIED_FITS, merge_twins=merge_twins,
+                               every=found, multistart=True)
+    arrays = distinct(model, _first_of_each_tuple(arrays.merged(found)), tolerance, deadline, merge_twins)
+    timing["tree"] += more["tree"]
+    timing["pose"] += more["pose"] + more["rank"] + time.perf_counter() - start
+    return arrays
 
 
 def _edges_unaffordable(model, deadline):

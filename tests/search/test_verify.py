@@ -140,3 +140,35 @@ def test_pairs_are_posed_longest_first():
     length = [np.linalg.norm(points[j] - points[i]) for i, j in pairs]
     assert sorted(pairs) == [(i, j) for i in range(5) for j in range(i + 1, 5)]
     assert np.all(np.diff(length) <= 0)
+
+
+@pytest.fixture(scope="module")
+def rock_regions():
+    return ObjectModel.from_mesh(objects.load("rock1k"), patch_tol_deg=10.0)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_check_before_ok_finds_a_truth_the_region_search_lost(rock_regions, seed):
+    """stages.checked_by_samples: an answer whose hypotheses lost every pose strictly alike the
+    truth (by construction: those rows removed) gets it back from the search by hypothesize
+    and verify, fitted on the surface (χ² within noise), and keeps every pose it had that
+    fits, or a near-copy that fits better."""
+    from contactpose import stages
+    from contactpose.options import fit_threshold
+
+    model = rock_regions
+    pose, contacts = _grasp(model, np.random.default_rng(seed), 0.02)
+    noise = dict(position_noise=NOISE_FRAC * model.diameter, normal_noise_deg=NORMAL_DEG)
+    r = localize(model, contacts, **noise, keep="all", diagnose=False)
+    arrays = r.hypotheses.arrays
+    right = _near(model, arrays.poses[:, :3, :3], arrays.poses[:, :3, 3], pose, 5.0, 0.05)
+    assert right.any()
+    lost = arrays.take(np.flatnonzero(~right))
+    timing = {"tree": 0.0, "pose": 0.0}
+    checked = stages.checked_by_samples(model, contacts, lost, r.tolerance, timing)
+    back = _near(model, checked.poses[:, :3, :3], checked.poses[:, :3, 3], pose, 5.0, 0.05)
+    assert back.any() and checked.chi2[back].min() <= fit_threshold(contacts.n)
+    assert timing["tree"] > 0 and timing["pose"] > 0
+    for k in np.flatnonzero(lost.chi2 <= fit_threshold(contacts.n)):  # each pose it had that fits stays, or a
+        near = _near(model, checked.poses[:, :3, :3], checked.poses[:, :3, 3], lost.poses[k], 10.0, 0.1)
+        assert near.any() and checked.chi2[near].min() <= lost.chi2[k] + 1e-9  # near-copy of a lower χ² takes it
