@@ -119,6 +119,9 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
     weighed by their Laplace evidence (scoring.placements; ``result.confidence``,
     ``result.placements``); short of it the answer is "ambiguous" (the placements and their
     probabilities in the hint) or "underdetermined" (how loosely the contacts pin the pose).
+    On a model of surface regions with the closed form, an answer about to say "ok" is first
+    checked by the search by hypothesize and verify (stages.checked_by_samples): its fitted
+    poses join and the placements are weighed again, within the same time limit.
     "fast" only; the paper's rule is the classes' likelihood shares.
     search : the default method's search. "auto": the model's facet table or its surface
     regions (region tuples joined by the tree); "samples": hypothesize and verify over
