@@ -204,10 +204,8 @@ def localize(model, contacts, *, position_noise=None, normal_noise_deg=1.0, prio
         classes, status, hint, found, confidence = classify(arrays)
     if status == "ok" and fast and distinct and search == "auto" and solver == "closed-form" and model.has_regions:
         arrays = stages.checked_by_samples(model, contacts, arrays, tolerance, timing, finger_radius=finger_radius,
-                                           merge_twins=merge_twins, deadline=deadline)  # own clock
-        if free_space is not None:
-            with _clock(timing, "free_space"):
-                arrays = drop_intersecting(model, contacts, arrays, free_space, tolerance)[0]
+                                           free_space=free_space, merge_twins=merge_twins,
+                                           deadline=deadline)  # own clock
         with _clock(timing, "rank"):
             classes, status, hint, found, confidence = classify(arrays)
     with _clock(timing, "rank"):

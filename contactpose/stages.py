@@ -32,7 +32,7 @@ from contactpose.progress import Deadline
 from contactpose.scoring import evidence, refine
 from contactpose.scoring import rank as ranking
 from contactpose.scoring.classes import MAX_CLASS_HYPOTHESES, distinct_poses, distinct_radius, pose_classes
-from contactpose.scoring.freespace import drop_blocked
+from contactpose.scoring.freespace import drop_blocked, drop_intersecting
 from contactpose.scoring.infacet import within_noise
 from contactpose.scoring.placements import placements, strict_groups, strictly_alike
 from contactpose.scoring.status import status as status_of
@@ -182,12 +182,13 @@ def verified_hypotheses(model, contacts, tolerance, *, deadline=None):
                     "rank": time.perf_counter() - done}
 
 
-def checked_by_samples(model, contacts, arrays, tolerance, timing, *, finger_radius=None, merge_twins=False,
-                       deadline=None):
+def checked_by_samples(model, contacts, arrays, tolerance, timing, *, finger_radius=None, free_space=None,
+                       merge_twins=False, deadline=None):
     """The ranked hypotheses of an answer about to say "ok", joined by those of the search by
     hypothesize and verify (:func:`verified_hypotheses`), fitted on the surface as that
-    search's are, one per distinct pose; its seconds are added to ``timing`` ("tree": the
-    candidates; "pose": the rest). Where a rounded fingertip rests at an edge or a vertex of a
+    search's are, those that meet ``free_space`` (a contacts.FreeSpace or None) dropped, one
+    per distinct pose; its seconds are added to ``timing`` ("tree": the candidates; "pose":
+    the rest). Where a rounded fingertip rests at an edge or a vertex of a
     rough scan, the table and the tree can lose the true placement while a wrong one fits
     within noise, and nothing in the answer tells; a search that shares no stage with them
     finds it in most of those grasps (research/sure.md, "A second search before ok").
@@ -199,6 +200,8 @@ def checked_by_samples(model, contacts, arrays, tolerance, timing, *, finger_rad
         found = drop_blocked(model, contacts, found, finger_radius)
     found = surface_hypotheses(model, contacts, found, tolerance, deadline, VERIFIED_FITS, merge_twins=merge_twins,
                                every=found, multistart=True)
+    if free_space is not None:
+        found = drop_intersecting(model, contacts, found, free_space, tolerance)[0]
     arrays = distinct(model, _first_of_each_tuple(arrays.merged(found)), tolerance, deadline, merge_twins)
     timing["tree"] += more["tree"]
     timing["pose"] += more["pose"] + more["rank"] + time.perf_counter() - start

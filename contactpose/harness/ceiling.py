@@ -129,7 +129,8 @@ def truth_share(model, contacts, result, true_pose, group=None):
     right = [_right(group, p.pose, true_pose, model.diameter) for p in listed]
     log_z = laplace_log_evidence([truth] + [p for p, r in zip(listed, right) if r]
                                  + [p for p, r in zip(listed, right) if not r])
-    own, wrong = np.max(log_z[:1 + sum(right)]), log_z[1 + sum(right):]
+    ours = 1 + sum(right)
+    own, wrong = np.max(log_z[:ours]), log_z[ours:]
     total = np.logaddexp.reduce(np.append(wrong, own))
     return (float(np.exp(own - total)) if np.isfinite(own) else 0.0), chi2
 

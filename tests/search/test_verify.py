@@ -10,9 +10,10 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from contactpose import localize
-from contactpose.contacts import Contacts, Tolerance
+from contactpose.contacts import Contacts, FreeSpace, Tolerance
 from contactpose.errors import ContactPoseError
 from contactpose.geometry import metrics
+from contactpose.geometry.raycast import raycaster
 from contactpose.model.object_model import ObjectModel
 from contactpose.search.verify import _pair_pose, candidate_poses, posed_pairs
 from contactpose.sim import fingertip, objects
@@ -172,3 +173,8 @@ def test_the_check_before_ok_finds_a_truth_the_region_search_lost(rock_regions, 
     for k in np.flatnonzero(lost.chi2 <= fit_threshold(contacts.n)):  # each pose it had that fits stays, or a
         near = _near(model, checked.poses[:, :3, :3], checked.poses[:, :3, 3], lost.poses[k], 10.0, 0.1)
         assert near.any() and checked.chi2[near].min() <= lost.chi2[k] + 1e-9  # near-copy of a lower χ² takes it
+    inside = model.centroids - 0.05 * model.diameter * model.planes.normals  # a ball the truth's object holds:
+    held = inside[raycaster(model).inside(inside)][:1] @ pose[:3, :3].T + pose[:3, 3]  # told free, the truth
+    checked = stages.checked_by_samples(model, contacts, lost, r.tolerance, timing,  # cannot come back
+                                        free_space=FreeSpace(points=held))
+    assert not _near(model, checked.poses[:, :3, :3], checked.poses[:, :3, 3], pose, 5.0, 0.05).any()
