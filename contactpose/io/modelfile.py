@@ -238,32 +238,21 @@ def read_npz(path, mmap=None):
             log.debug("cannot memory-map %s (%s: %s); reading it instead", path, type(exc).__name__, exc)
     check_room(path, sum(sizes.values()), LOAD_FACTOR)
     try:
-        return _read_members(path, sizes)
+        return _read_members(path)
     except MemoryError:
         raise out_of_memory(path) from None
     except Exception as exc:  # any failure to decode the bytes means a damaged or foreign file
         raise ModelFileError(unreadable(path, exc)) from None
 
 
-def _read_members(path, sizes, workers=2):
-    """np.load of every member, the members split by size over ``workers`` threads (zlib
-    inflates outside the GIL, so deflated files read about twice as fast on two cores)."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    groups = [[] for _ in range(workers)]
-    load = [0] * workers
-    for name in sorted(sizes, key=sizes.get, reverse=True):
-        g = load.index(min(load))
-        groups[g].append(name.removesuffix(".npy"))
-        load[g] += sizes[name]
-
-    def read(keys):
-        with np.load(path, allow_pickle=False) as npz:
-            return {key: npz[key] for key in keys}
-
-    with ThreadPoolExecutor(workers) as pool:
-        parts = list(pool.map(read, [g for g in groups if g]))
-    return {key: part[key] for part in parts for key in part}
+def _read_members(path):
+    """np.load of every member, in this thread. numpy parses each .npy header with
+    ast.literal_eval, and Python 3.11 keeps that parser's recursion bookkeeping per
+    interpreter, not per thread: two threads parsing at once can fail with "SystemError: AST
+    constructor recursion depth mismatch" (CPython issue 106905; it failed a model load here
+    when members were read on two threads)."""
+    with np.load(path, allow_pickle=False) as npz:
+        return {key: npz[key] for key in npz.files}
 
 
 def unreadable(path, exc):
